@@ -1,0 +1,19 @@
+"""Gaussian-splatting renderer: a vectorised pure-PyTorch rasteriser (CPU or
+GPU, autograd backward) with gsplat's conventions, plus a gsplat (CUDA)
+backend behind the same interface."""
+
+from .projection import ProjectedGaussians, project_gaussians, quat_to_rotmat
+from .rasterize import BACKEND_ENV_VAR, RenderOutput, rasterize, resolve_backend
+from .sh import sh_to_color, spherical_harmonics
+
+__all__ = [
+    "BACKEND_ENV_VAR",
+    "ProjectedGaussians",
+    "RenderOutput",
+    "project_gaussians",
+    "quat_to_rotmat",
+    "rasterize",
+    "resolve_backend",
+    "sh_to_color",
+    "spherical_harmonics",
+]
