@@ -1,0 +1,116 @@
+"""Dataparser for the splatreplace data format (nerfstudio ``transforms.json``, extended).
+
+Adds to nerfstudio's parser, for the frames of the requested split and in the same order:
+``instance_mask_filenames`` (16-bit instance masks), the ``instances`` list with ground-truth
+object→world poses moved into the dataparser's normalised frame, and ``depth_unit_scale_factor``
+read from ``transforms.json`` when present there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Type
+
+import numpy as np
+import torch
+
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+from nerfstudio.utils.io import load_from_json
+
+
+class DatasetFormatError(ValueError):
+    """A dataset file is missing or malformed; the message names the file and the problem."""
+
+
+def normalise_object_pose(
+    object_to_world: np.ndarray, dataparser_transform: np.ndarray, dataparser_scale: float
+) -> np.ndarray:
+    """Moves an object→world pose into nerfstudio's normalised world frame.
+
+    Args:
+        object_to_world: [4, 4] rigid pose in the dataset's world frame.
+        dataparser_transform: [3, 4] the parser's world transform (rotation + translation).
+        dataparser_scale: scalar applied to positions after the transform.
+
+    Returns:
+        [4, 4] similarity object→normalised-world (rotation block scaled by ``dataparser_scale``).
+    """
+    transform = np.eye(4)
+    transform[:3, :4] = dataparser_transform
+    scaled = np.diag([dataparser_scale, dataparser_scale, dataparser_scale, 1.0]) @ transform
+    return scaled @ np.asarray(object_to_world, dtype=np.float64)
+
+
+@dataclass
+class SplatReplaceDataParserConfig(NerfstudioDataParserConfig):
+    """nerfstudio's parser plus instance masks, instances and ground-truth poses."""
+
+    _target: Type = field(default_factory=lambda: SplatReplaceDataParser)
+    load_3D_points: bool = True
+    """Initialise from the dataset's point cloud (``ply_file_path``) when there is one."""
+
+
+@dataclass
+class SplatReplaceDataParser(Nerfstudio):
+    config: SplatReplaceDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str = "train") -> DataparserOutputs:
+        transforms_path = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
+        if not transforms_path.exists():
+            raise DatasetFormatError(f"{transforms_path}: file not found (expected a nerfstudio transforms.json)")
+        meta = load_from_json(transforms_path)
+        if "depth_unit_scale_factor" in meta:
+            self.config.depth_unit_scale_factor = float(meta["depth_unit_scale_factor"])
+        outputs = super()._generate_dataparser_outputs(split)
+        data_dir = transforms_path.parent
+
+        outputs.metadata["instance_mask_filenames"] = self._instance_mask_filenames(
+            meta, data_dir, outputs.image_filenames, transforms_path
+        )
+        outputs.metadata["instances"] = self._instances(meta, outputs)
+        return outputs
+
+    @staticmethod
+    def _instance_mask_filenames(
+        meta: Dict, data_dir: Path, image_filenames: List[Path], transforms_path: Path
+    ) -> Optional[List[Path]]:
+        frames = meta.get("frames", [])
+        with_masks = [f for f in frames if "instance_mask_path" in f]
+        if not with_masks:
+            return None
+        if len(with_masks) != len(frames):
+            raise DatasetFormatError(
+                f"{transforms_path}: {len(frames) - len(with_masks)} of {len(frames)} frames have no "
+                "'instance_mask_path'; give one for every frame or for none"
+            )
+        # nerfstudio may point images at a downscaled folder (images_2/...), so match by file name.
+        by_name = {Path(f["file_path"]).name: data_dir / f["instance_mask_path"] for f in frames}
+        if len(by_name) != len(frames):
+            raise DatasetFormatError(f"{transforms_path}: image file names must be unique to pair them with masks")
+        return [by_name[Path(p).name] for p in image_filenames]
+
+    @staticmethod
+    def _instances(meta: Dict, outputs: DataparserOutputs) -> List[Dict]:
+        transform = outputs.dataparser_transform.numpy()
+        instances = []
+        for inst in meta.get("instances", []):
+            entry = {
+                "id": int(inst["id"]),
+                "class": str(inst.get("class", "object")),
+                "symmetry": str(inst.get("symmetry", "none")),
+            }
+            if "transform_matrix" in inst:
+                entry["transform_matrix"] = torch.from_numpy(
+                    normalise_object_pose(np.array(inst["transform_matrix"]), transform, outputs.dataparser_scale)
+                ).float()
+            instances.append(entry)
+        return instances
+
+
+splatreplace_dataparser = DataParserSpecification(
+    config=SplatReplaceDataParserConfig(),
+    description="nerfstudio transforms.json with instance masks, instances and ground-truth poses (splatreplace_ns)",
+)

@@ -1,0 +1,290 @@
+"""SplatReplaceModel: splatfacto that runs on CPU, plus the 3DGS* base-stage terms.
+
+3DGS* (paper §4.1, §5.2) = splatfacto + L1 on opacity and scale + depth loss when frames carry
+depth + per-image affine exposure correction. Rendering goes through ``splatreplace_ns.render``
+(gsplat on CUDA, pure torch on CPU), so nothing here calls ``.cuda()``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+
+import torch
+from gsplat.strategy import DefaultStrategy
+from pytorch_msssim import SSIM
+from torch.nn import Parameter
+
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import (
+    RGB2SH,
+    SplatfactoModel,
+    SplatfactoModelConfig,
+    get_viewmat,
+    num_sh_bases,
+    random_quat_tensor,
+)
+from nerfstudio.utils.colors import get_color
+
+from splatreplace_ns.eval.perceptual import LocalLPIPS
+from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
+from splatreplace_ns.render import rasterize
+
+allow_numpy_scalars_in_checkpoints()
+
+
+def base_regularisers(opacities: torch.Tensor, scales: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """L1 terms of paper Eq. 1 on the activated parameters.
+
+    Args:
+        opacities: [N, 1] opacity logits.
+        scales: [N, 3] log-scales.
+
+    Returns:
+        (mean sigmoid opacity, mean exp scale), two scalars.
+    """
+    return torch.sigmoid(opacities).mean(), torch.exp(scales).mean()
+
+
+def apply_exposure(rgb: torch.Tensor, affine: torch.Tensor) -> torch.Tensor:
+    """Per-image affine colour correction ``rgb' = A[:, :3] rgb + A[:, 3]``.
+
+    Args:
+        rgb: [H, W, 3] rendered colour.
+        affine: [3, 4] exposure matrix (identity = no change).
+    """
+    return rgb @ affine[:, :3].T + affine[:, 3]
+
+
+def inverse_depth_l1(pred: torch.Tensor, target: torch.Tensor, min_depth: float = 1e-3) -> torch.Tensor:
+    """Mean L1 between inverse depths where the target is valid (> 0).
+
+    Args:
+        pred: [H, W, 1] expected depth.
+        target: [H, W, 1] ground-truth z-depth, 0 where unknown.
+    """
+    valid = target > min_depth
+    if not bool(valid.any()):
+        return pred.sum() * 0.0
+    inv_pred = 1.0 / pred.clamp_min(min_depth)
+    inv_target = 1.0 / target.clamp_min(min_depth)
+    return (inv_pred - inv_target).abs()[valid].mean()
+
+
+def nearest_downscale(image: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
+    """Nearest-neighbour downscale of an [H, W, C] map (keeps invalid depth as 0, unlike averaging)."""
+    if factor == 1:
+        return image
+    return image[factor // 2 :: factor, factor // 2 :: factor][:height, :width]
+
+
+@dataclass
+class SplatReplaceModelConfig(SplatfactoModelConfig):
+    """Base 3DGS* stage: splatfacto on CPU or CUDA plus the paper's regularisers."""
+
+    _target: Type = field(default_factory=lambda: SplatReplaceModel)
+    opacity_l1_lambda: float = 0.01
+    """Weight of the L1 penalty on opacities (paper Eq. 1); 0 disables it."""
+    scale_l1_lambda: float = 0.01
+    """Weight of the L1 penalty on scales (paper Eq. 1); 0 disables it."""
+    depth_lambda: float = 0.1
+    """Weight of the inverse-depth L1 loss, used when frames carry depth."""
+    use_exposure_correction: bool = True
+    """Learn a per-training-image affine colour correction (3x4)."""
+    render_backend: Literal["auto", "torch", "gsplat"] = "auto"
+    """auto: gsplat on CUDA, pure torch on CPU. torch: force the torch renderer everywhere."""
+    grad_thresh_without_absgrad: float = 0.0002
+    """Densification threshold used when absolute gradients are unavailable (torch renderer)."""
+
+
+class SplatReplaceModel(SplatfactoModel):
+    """splatfacto with a device-agnostic renderer and the 3DGS* base-stage losses."""
+
+    config: SplatReplaceModelConfig
+
+    @property
+    def uses_gsplat(self) -> bool:
+        device = str(self.kwargs.get("device", "cpu"))
+        return self.config.render_backend != "torch" and device.startswith("cuda")
+
+    def populate_modules(self):
+        # Written out rather than calling super(): splatfacto's version calls .cuda() and builds
+        # LPIPS with weights that it would download.
+        if self.seed_points is not None and not self.config.random_init:
+            means = self.seed_points[0].float().clone()
+        else:
+            means = (torch.rand((self.config.num_random, 3)) - 0.5) * self.config.random_scale
+        distances, _ = self.k_nearest_sklearn(means, 3)
+        avg_dist = torch.from_numpy(distances).float().mean(dim=-1, keepdim=True).clamp_min(1e-7)
+        num_points = means.shape[0]
+        dim_sh = num_sh_bases(self.config.sh_degree)
+
+        features_dc = torch.rand(num_points, 3)
+        features_rest = torch.zeros((num_points, dim_sh - 1, 3))
+        seed_has_colour = (
+            self.seed_points is not None and not self.config.random_init and self.seed_points[1].shape[0] > 0
+        )
+        if seed_has_colour:
+            rgb = self.seed_points[1].float() / 255.0
+            if self.config.sh_degree > 0:
+                features_dc = RGB2SH(rgb)
+            else:
+                features_dc = torch.logit(rgb, eps=1e-10)
+
+        self.gauss_params = torch.nn.ParameterDict(
+            {
+                "means": Parameter(means),
+                "scales": Parameter(torch.log(avg_dist.repeat(1, 3))),
+                "quats": Parameter(random_quat_tensor(num_points)),
+                "features_dc": Parameter(features_dc),
+                "features_rest": Parameter(features_rest),
+                "opacities": Parameter(torch.logit(0.1 * torch.ones(num_points, 1))),
+            }
+        )
+        self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
+        if self.config.use_exposure_correction:
+            self.exposure = Parameter(torch.eye(3, 4).repeat(self.num_train_data, 1, 1))
+
+        from torchmetrics.image import PeakSignalNoiseRatio
+
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
+        self.lpips = LocalLPIPS()
+        self.step = 0
+        self.crop_box = None
+        if self.config.background_color == "random":
+            self.background_color = torch.tensor([0.1490, 0.1647, 0.2157])  # viser's background
+        else:
+            self.background_color = get_color(self.config.background_color)
+        if self.config.use_bilateral_grid:
+            raise ValueError("use_bilateral_grid is not supported by splat-replace; use exposure correction")
+
+        # Absolute gradients come only from gsplat; the torch renderer gives plain gradients,
+        # for which the original 3DGS threshold applies.
+        absgrad = self.config.use_absgrad and self.uses_gsplat
+        self.strategy = DefaultStrategy(
+            prune_opa=self.config.cull_alpha_thresh,
+            grow_grad2d=self.config.densify_grad_thresh if absgrad else self.config.grad_thresh_without_absgrad,
+            grow_scale3d=self.config.densify_size_thresh,
+            grow_scale2d=self.config.split_screen_size,
+            prune_scale3d=self.config.cull_scale_thresh,
+            prune_scale2d=self.config.cull_screen_size,
+            refine_scale2d_stop_iter=self.config.stop_screen_size_at,
+            refine_start_iter=self.config.warmup_length,
+            refine_stop_iter=self.config.stop_split_at,
+            reset_every=self.config.reset_alpha_every * self.config.refine_every,
+            refine_every=self.config.refine_every,
+            pause_refine_after_reset=self.num_train_data + self.config.refine_every,
+            absgrad=absgrad,
+            revised_opacity=False,
+            verbose=False,
+        )
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_param_groups()
+        if self.config.use_exposure_correction:
+            groups["exposure"] = [self.exposure]
+        return groups
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        if not isinstance(camera, Cameras):
+            raise TypeError(f"get_outputs expects a Cameras object, got {type(camera).__name__}")
+        if self.training:
+            if camera.shape[0] != 1:
+                raise ValueError("training renders one camera at a time")
+            camera_to_world = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            camera_to_world = camera.camera_to_worlds
+
+        keep = None
+        if self.crop_box is not None and not self.training:
+            keep = self.crop_box.within(self.means).squeeze()
+            if keep.sum() == 0:
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+
+        def crop(t: torch.Tensor) -> torch.Tensor:
+            return t if keep is None else t[keep]
+
+        scale_factor = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale_factor)
+        viewmat = get_viewmat(camera_to_world)[0]
+        K = camera.get_intrinsics_matrices()[0].to(self.device)
+        W, H = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (H, W)
+        camera.rescale_output_resolution(scale_factor)
+
+        if self.config.sh_degree > 0:
+            colors = torch.cat((crop(self.features_dc)[:, None, :], crop(self.features_rest)), dim=1)
+            sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        else:
+            colors = torch.sigmoid(crop(self.features_dc))
+            sh_degree = None
+
+        out = rasterize(
+            crop(self.means),
+            crop(self.quats),
+            torch.exp(crop(self.scales)),
+            torch.sigmoid(crop(self.opacities)).squeeze(-1),
+            colors,
+            viewmat,
+            K,
+            W,
+            H,
+            sh_degree=sh_degree,
+            near=0.01,
+            far=1e10,
+            backend="gsplat" if self.uses_gsplat else "torch",
+            absgrad=self.strategy.absgrad,
+        )
+        self.info = {
+            "means2d": out.means2d,
+            "radii": out.radii,
+            "width": W,
+            "height": H,
+            "n_cameras": 1,
+            "gaussian_ids": None,
+        }
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+
+        background = self._get_background_color()
+        rgb = out.image[..., :3] + (1 - out.alpha) * background
+        cam_idx = (camera.metadata or {}).get("cam_idx")
+        if self.config.use_exposure_correction and self.training and cam_idx is not None:
+            rgb = apply_exposure(rgb, self.exposure[cam_idx])
+        rgb = torch.clamp(rgb, 0.0, 1.0)
+        depth = torch.where(out.alpha > 0, out.depth, out.depth.detach().max())
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(H, W, 3)
+        return {"rgb": rgb, "depth": depth, "accumulation": out.alpha, "background": background}
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.config.opacity_l1_lambda > 0 or self.config.scale_l1_lambda > 0:
+            opacity_l1, scale_l1 = base_regularisers(self.opacities, self.scales)
+            loss_dict["opacity_l1"] = self.config.opacity_l1_lambda * opacity_l1
+            loss_dict["scale_l1"] = self.config.scale_l1_lambda * scale_l1
+        if self.config.depth_lambda > 0 and "depth" in batch and outputs.get("depth") is not None:
+            H, W = outputs["depth"].shape[:2]
+            target = nearest_downscale(batch["depth"].to(self.device), self._get_downscale_factor(), H, W)
+            loss_dict["depth_loss"] = self.config.depth_lambda * inverse_depth_l1(outputs["depth"], target)
+        return loss_dict
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        predicted_rgb = outputs["rgb"]
+        combined_rgb = torch.cat([gt_rgb, predicted_rgb], dim=1)
+        gt = torch.moveaxis(gt_rgb, -1, 0)[None]
+        pred = torch.moveaxis(predicted_rgb, -1, 0)[None]
+        metrics = {"psnr": float(self.psnr(gt, pred).item()), "ssim": float(self.ssim(gt, pred))}
+        lpips = self.lpips(gt, pred)
+        if lpips is not None:
+            metrics["lpips"] = lpips
+        return metrics, {"img": combined_rgb}
+
+    def lpips_status(self) -> Optional[str]:
+        """None when LPIPS is computed, otherwise why it is unavailable."""
+        return None if self.lpips.available else self.lpips.unavailable_reason

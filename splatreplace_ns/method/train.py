@@ -1,0 +1,48 @@
+"""In-process training and evaluation through nerfstudio's own Trainer (used by the CLI and tests)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict, Optional
+
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+
+from splatreplace_ns.method.config import splat_replace_trainer_config
+
+
+def make_trainer_config(
+    data: Path,
+    output_dir: Path,
+    max_num_iterations: int,
+    *,
+    experiment_name: Optional[str] = None,
+    steps_per_save: Optional[int] = None,
+) -> TrainerConfig:
+    """splat-replace's TrainerConfig set up for an unattended run (no viewer, no evaluation mid-run)."""
+    config = splat_replace_trainer_config(max_num_iterations)
+    config.pipeline.datamanager.data = Path(data)
+    config.output_dir = Path(output_dir)
+    config.experiment_name = experiment_name or Path(data).name
+    config.timestamp = "run"
+    config.vis = "tensorboard"
+    config.steps_per_eval_image = max_num_iterations + 1
+    config.steps_per_eval_all_images = max_num_iterations + 1
+    config.steps_per_save = steps_per_save or max_num_iterations
+    config.logging.local_writer.enable = False
+    return config
+
+
+def run_training(config: TrainerConfig) -> Trainer:
+    """Saves ``config.yml`` like ``ns-train`` does, trains, and returns the trainer."""
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return trainer
+
+
+def evaluate_test_views(trainer: Trainer) -> Dict[str, float]:
+    """Average image metrics over the eval split (what ``ns-eval`` reports)."""
+    trainer.pipeline.eval()
+    return trainer.pipeline.get_average_eval_image_metrics()

@@ -1,0 +1,83 @@
+"""Tiny scenes the tests make themselves: known Gaussians rendered by the project's rasterizer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def look_at_cv(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """[4, 4] camera→world in the OpenCV convention (x right, y down, z forward)."""
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up))
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, forward, eye
+    return c2w
+
+
+def write_gaussian_scene(
+    out: Path, n_gaussians: int = 300, n_views: int = 12, width: int = 64, height: int = 48, seed: int = 0,
+    n_test: int = 0,
+) -> dict:
+    """Renders a fixed random Gaussian scene from views on a circle and writes a nerfstudio dataset.
+
+    Returns the ground-truth Gaussians (means [N,3], colors [N,3], ...) for the caller's checks.
+    """
+    from splatreplace_ns.render import rasterize
+
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n_gaussians, 3, generator=g) - 0.5) * 1.2
+    quats = torch.randn(n_gaussians, 4, generator=g)
+    scales = 0.04 + 0.06 * torch.rand(n_gaussians, 3, generator=g)
+    opacities = 0.6 + 0.35 * torch.rand(n_gaussians, generator=g)
+    colors = torch.rand(n_gaussians, 3, generator=g)
+
+    fx = fy = 0.9 * width
+    K = torch.tensor([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=torch.float32)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    frames = []
+    total = n_views + n_test
+    for i in range(total):
+        angle = 2 * np.pi * i / n_views + (np.pi / n_views if i >= n_views else 0.0)
+        eye = np.array([3.0 * np.cos(angle), 3.0 * np.sin(angle), 1.0 + 0.3 * np.sin(3 * angle)])
+        c2w = look_at_cv(eye, np.zeros(3))
+        viewmat = torch.from_numpy(np.linalg.inv(c2w)).float()
+        with torch.no_grad():
+            img = rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height).image
+        path = f"images/{i:04d}.png"
+        rgb8 = (img.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(out / path), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
+        frames.append({"file_path": path, "transform_matrix": (c2w @ OPENCV_TO_OPENGL).tolist()})
+
+    jitter = 0.02 * torch.randn(n_gaussians, 3, generator=g)
+    pts = (means + jitter).numpy()
+    rgb = (colors.numpy() * 255).astype(np.uint8)
+    vertex = np.array(
+        [tuple(p) + tuple(c) for p, c in zip(pts, rgb)],
+        dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
+    )
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(out / "points3d.ply"))
+
+    names = [f["file_path"] for f in frames]
+    test_names = names[n_views:] if n_test else names[:n_views]
+    meta = {
+        "camera_model": "PINHOLE",
+        "fl_x": fx, "fl_y": fy, "cx": width / 2, "cy": height / 2, "w": width, "h": height,
+        "frames": frames,
+        "ply_file_path": "points3d.ply",
+        "train_filenames": names[:n_views],
+        "val_filenames": test_names,
+        "test_filenames": test_names,
+    }
+    (out / "transforms.json").write_text(json.dumps(meta, indent=1))
+    return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors, "K": K}

@@ -1,0 +1,113 @@
+"""SplatReplaceDataManager on CPU: images, depth, instance masks, instances, clear errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from scenes import OPENCV_TO_OPENGL, look_at_cv
+from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
+from splatreplace_ns.datamanager.dataparser import DatasetFormatError, normalise_object_pose
+
+W, H = 32, 24
+
+
+def write_dataset(root: Path, n: int = 6, mask_ids=(1, 2), depth_mm: int = 2500) -> dict:
+    rng = np.random.default_rng(0)
+    for sub in ("images", "masks", "depth"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i in range(n):
+        angle = 2 * np.pi * i / n
+        c2w = look_at_cv(np.array([3 * np.cos(angle), 3 * np.sin(angle), 1.0]), np.zeros(3))
+        cv2.imwrite(str(root / f"images/{i:04d}.png"), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+        mask = np.zeros((H, W), np.uint16)
+        mask[2:8, 2:10] = mask_ids[0]
+        mask[12:20, 14:30] = mask_ids[1]
+        cv2.imwrite(str(root / f"masks/{i:04d}.png"), mask)
+        cv2.imwrite(str(root / f"depth/{i:04d}.png"), np.full((H, W), depth_mm, np.uint16))
+        frames.append({
+            "file_path": f"images/{i:04d}.png",
+            "instance_mask_path": f"masks/{i:04d}.png",
+            "depth_file_path": f"depth/{i:04d}.png",
+            "transform_matrix": (c2w @ OPENCV_TO_OPENGL).tolist(),
+        })
+    pose = np.eye(4)
+    pose[:3, 3] = [0.5, -0.25, 0.0]
+    names = [f["file_path"] for f in frames]
+    meta = {
+        "camera_model": "PINHOLE", "fl_x": 30.0, "fl_y": 30.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+        "depth_unit_scale_factor": 0.001,
+        "frames": frames,
+        "instances": [
+            {"id": 1, "class": "chair", "transform_matrix": pose.tolist(), "symmetry": "none"},
+            {"id": 2, "class": "chair", "symmetry": "rot_z:4"},
+        ],
+        "train_filenames": names[:4], "val_filenames": names[4:], "test_filenames": names[4:],
+    }
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return meta
+
+
+def setup_dm(root: Path, cache_images: str = "cpu"):
+    config = SplatReplaceDataManagerConfig(cache_images=cache_images)
+    config.data = root
+    config.dataparser.load_3D_points = False
+    return config.setup(device="cpu", test_mode="val")
+
+
+def test_cpu_datamanager_loads_masks_depth_and_instances(tmp_path):
+    meta = write_dataset(tmp_path)
+    dm = setup_dm(tmp_path, cache_images="cpu")  # nerfstudio's own path would call pin_memory() here
+    camera, batch = dm.next_train(0)
+    assert camera.metadata["cam_idx"] in range(4)
+    assert batch["image"].shape == (H, W, 3)
+    assert batch["instance_mask"].shape == (H, W, 1) and batch["instance_mask"].dtype == torch.int32
+    assert set(torch.unique(batch["instance_mask"]).tolist()) == {0, 1, 2}
+    # depth is in the normalised frame: millimetres → metres → dataparser scale
+    scale = dm.train_dataparser_outputs.dataparser_scale
+    assert torch.allclose(batch["depth"], torch.full((H, W, 1), 2.5 * scale), rtol=1e-5)
+    assert len(dm.eval_dataset) == 2
+
+    instances = dm.train_dataparser_outputs.metadata["instances"]
+    assert [i["id"] for i in instances] == [1, 2] and instances[1]["symmetry"] == "rot_z:4"
+    # the ground-truth pose follows the cameras into the normalised frame
+    transform = dm.train_dataparser_outputs.dataparser_transform.numpy()
+    origin = np.array(meta["instances"][0]["transform_matrix"])[:3, 3]
+    expected = scale * (transform[:, :3] @ origin + transform[:, 3])
+    assert np.allclose(instances[0]["transform_matrix"][:3, 3].numpy(), expected, atol=1e-5)
+    assert "transform_matrix" not in instances[1]
+
+
+def test_normalise_object_pose_composes_similarity():
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, 2.0, 3.0]
+    transform = np.hstack([np.eye(3)[[1, 0, 2]], np.array([[0.5], [0.0], [-1.0]])])
+    out = normalise_object_pose(pose, transform, 0.5)
+    assert np.allclose(out[:3, 3], 0.5 * (np.array([2.0, 1.0, 3.0]) + [0.5, 0.0, -1.0]))
+    assert np.allclose(out[:3, :3], 0.5 * transform[:, :3])
+
+
+def test_unknown_instance_id_is_named(tmp_path):
+    write_dataset(tmp_path, mask_ids=(1, 7))
+    with pytest.raises(DatasetFormatError, match=r"masks/0000\.png.*ids \[7\]"):
+        setup_dm(tmp_path).next_train(0)
+
+
+def test_mask_size_mismatch_is_named(tmp_path):
+    write_dataset(tmp_path)
+    cv2.imwrite(str(tmp_path / "masks/0001.png"), np.zeros((H // 2, W // 2), np.uint16))
+    with pytest.raises(DatasetFormatError, match=r"masks/0001\.png: size 16x12 does not match"):
+        setup_dm(tmp_path).next_train(0)
+
+
+def test_missing_mask_is_named(tmp_path):
+    write_dataset(tmp_path)
+    (tmp_path / "masks/0002.png").unlink()
+    with pytest.raises(DatasetFormatError, match=r"masks/0002\.png: instance mask file not found"):
+        setup_dm(tmp_path).next_train(0)
