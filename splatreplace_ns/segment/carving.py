@@ -1,0 +1,52 @@
+"""Space carving of leftover background Gaussians (paper §4.1, post-processing)."""
+
+from __future__ import annotations
+
+import torch
+
+
+def carve_mask(
+    means: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    instance_masks: torch.Tensor,
+    rendered_depths: torch.Tensor,
+    depth_tolerance: float = 0.02,
+    near: float = 0.01,
+) -> torch.Tensor:
+    """Which background Gaussians to remove.
+
+    A Gaussian is removed when, in *every* training view, its centre projects inside an instance
+    mask, or outside the image, or is not visible (behind the camera, or behind the rendered surface
+    by more than ``depth_tolerance`` relative depth).
+
+    Args:
+        means: [N, 3] centres of the background Gaussians.
+        viewmats: [V, 4, 4] world→camera (OpenCV).
+        Ks: [V, 3, 3] intrinsics.
+        instance_masks: [V, H, W] bool, union of the instance masks of each view.
+        rendered_depths: [V, H, W] expected depth of the full scene in each view (0 where empty).
+
+    Returns:
+        [N] bool, True = remove.
+    """
+    N = means.shape[0]
+    remove = torch.ones(N, dtype=torch.bool, device=means.device)
+    homogeneous = torch.cat([means, torch.ones_like(means[:, :1])], dim=-1)  # [N, 4]
+    for view in range(viewmats.shape[0]):  # views are few; Gaussians are vectorised
+        cam = homogeneous @ viewmats[view].T  # [N, 4]
+        z = cam[:, 2]
+        in_front = z > near
+        pix = cam[:, :3] @ Ks[view].T
+        u = pix[:, 0] / z.clamp_min(near)
+        v = pix[:, 1] / z.clamp_min(near)
+        inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        col = u.clamp(0, width - 1).long()
+        row = v.clamp(0, height - 1).long()
+        in_mask = inside & instance_masks[view][row, col]
+        surface = rendered_depths[view][row, col]
+        occluded = inside & (surface > 0) & (z > surface * (1.0 + depth_tolerance))
+        remove &= (~inside) | in_mask | occluded
+    return remove

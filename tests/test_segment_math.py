@@ -1,0 +1,98 @@
+"""Segmentation math against hand-made cases: sampling, contrastive loss, selection, carving."""
+
+from __future__ import annotations
+
+import torch
+
+from splatreplace_ns.segment.carving import carve_mask
+from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss, cosine_distance
+from splatreplace_ns.segment.sampling import sample_contrastive_pixels
+from splatreplace_ns.segment.select import masks_from_rendered_features, select_gaussians
+
+
+def test_sampling_gives_every_mask_its_share():
+    mask = torch.zeros(40, 50, dtype=torch.int32)
+    mask[0:2, 0:2] = 3  # tiny instance: 4 pixels
+    mask[10:30, 10:40] = 1
+    g = torch.Generator().manual_seed(0)
+    idx, labels = sample_contrastive_pixels(mask, n_uniform=1000, n_per_mask=200, generator=g)
+    assert idx.shape == labels.shape == (1000 + 3 * 200,)
+    assert torch.equal(mask.reshape(-1)[idx].long(), labels)
+    per_mask = labels[1000:]
+    for label in (0, 1, 3):
+        assert (per_mask == label).sum() == 200
+    # uniform part follows the area: instance 1 covers 600/2000 of the image
+    share = (labels[:1000] == 1).float().mean().item()
+    assert abs(share - 0.3) < 0.06
+
+
+def test_contrastive_loss_prefers_separated_features():
+    labels = torch.tensor([0] * 20 + [1] * 20 + [2] * 20)
+    separated = torch.nn.functional.one_hot(labels, 8).float()
+    mixed = torch.ones(60, 8) + 0.01 * torch.randn(60, 8)
+    g = torch.Generator().manual_seed(0)
+    good = contrastive_loss(separated, labels, generator=g)
+    bad = contrastive_loss(mixed, labels, generator=torch.Generator().manual_seed(0))
+    assert good["pull"] < 1e-6 and good["push"] < 1e-6 and good["hard_pull"] < 1e-6
+    assert bad["push"] > 0.1
+    assert good["unit_norm"] < 1e-8
+
+
+def test_contrastive_loss_gradients_are_finite_for_zero_features():
+    features = torch.zeros(30, 16, requires_grad=True)
+    labels = torch.randint(0, 3, (30,))
+    losses = contrastive_loss(features, labels)
+    sum(losses.values()).backward()
+    assert torch.isfinite(features.grad).all()
+
+
+def test_contrastive_loss_single_pixel_is_zero():
+    losses = contrastive_loss(torch.ones(1, 4, requires_grad=True), torch.zeros(1, dtype=torch.long))
+    assert all(v.item() == 0 for v in losses.values())
+
+
+def test_hard_pairs_add_pull():
+    labels = torch.tensor([1, 1])
+    far = torch.tensor([[1.0, 0.0], [-1.0, 0.0]])  # distance 2 > 0.5
+    losses = contrastive_loss(far, labels, ContrastiveLossConfig(max_pairs=10))
+    assert losses["hard_pull"] > 0 and torch.isclose(losses["hard_pull"], losses["pull"])
+
+
+def test_selection_threshold():
+    queries = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    feats = torch.tensor([[2.0, 0.0, 0.0], [0.0, 0.5, 0.01], [0.7, 0.7, 0.0], [0.0, 0.0, 1.0]])
+    labels = select_gaussians(feats, queries, tau=0.1)
+    assert labels.tolist() == [1, 2, 0, 0]
+    assert cosine_distance(feats[2], queries[0]) > 0.1
+    assert select_gaussians(feats, torch.zeros(0, 3)).tolist() == [0, 0, 0, 0]
+
+
+def test_masks_from_rendered_features_respects_alpha():
+    queries = torch.eye(2, 4)
+    rendered = torch.zeros(2, 3, 4)
+    rendered[0, :, 0] = 1.0
+    rendered[1, :, 1] = 1.0
+    alpha = torch.ones(2, 3, 1)
+    alpha[1, 2] = 0.1
+    masks = masks_from_rendered_features(rendered, alpha, queries)
+    assert masks.tolist() == [[1, 1, 1], [2, 2, 0]]
+
+
+def test_carving_removes_only_gaussians_hidden_by_instances_in_every_view():
+    W, H = 20, 20
+    K = torch.tensor([[20.0, 0, 10], [0, 20.0, 10], [0, 0, 1]])
+    views = torch.stack([torch.eye(4), torch.eye(4)])
+    views[1, 0, 3] = 0.5  # second camera shifted
+    means = torch.tensor([
+        [0.0, 0.0, 2.0],    # projects into the instance mask in both views
+        [0.3, 0.3, 2.0],    # visible background in view 0
+        [0.0, 0.0, -1.0],   # behind both cameras
+        [0.3, 0.3, 5.0],    # behind the rendered surface in both views
+    ])
+    masks = torch.zeros(2, H, W, dtype=torch.bool)
+    masks[0, 8:12, 8:12] = True
+    masks[1, 8:12, 14:17] = True  # the first centre projects to u = 15 there
+    depths = torch.full((2, H, W), 2.0)
+    remove = carve_mask(means, views, torch.stack([K, K]), W, H, masks, depths)
+    assert remove.tolist() == [True, False, True, True]
+    assert carve_mask(torch.zeros(0, 3), views, torch.stack([K, K]), W, H, masks, depths).shape == (0,)
