@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
+
+from nerfstudio.cameras.cameras import Cameras
 
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 
 from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParserConfig
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
+from splatreplace_ns.segment.sampling import sample_contrastive_pixels
 
 
 @dataclass
@@ -18,6 +21,10 @@ class SplatReplaceDataManagerConfig(FullImageDatamanagerConfig):
     _target: Type = field(default_factory=lambda: SplatReplaceDataManager)
     dataparser: SplatReplaceDataParserConfig = field(default_factory=SplatReplaceDataParserConfig)
     cache_images_type: Literal["uint8", "float32"] = "uint8"
+    contrastive_uniform_samples: int = 4096
+    """M_u: pixels sampled uniformly per image for the contrastive stage."""
+    contrastive_mask_samples: int = 4096
+    """M_s: pixels sampled inside each mask (and the background) per image."""
 
 
 class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
@@ -35,3 +42,34 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         if cache_images_device == "cpu" and not torch.cuda.is_available():
             cache_images_device = "gpu"  # "gpu" means "the model's device", which is the CPU here
         return super()._load_images(split, cache_images_device)
+
+    def next_train(self, step: int) -> Tuple[Cameras, Dict]:
+        camera, data = super().next_train(step)
+        for key in ("instance_mask", "depth"):
+            if key in data:
+                data[key] = data[key].to(self.device)
+        return camera, data
+
+    @property
+    def has_instance_masks(self) -> bool:
+        return self.train_dataparser_outputs.metadata.get("instance_mask_filenames") is not None
+
+    def sample_contrastive_pixels(
+        self, batch: Dict, generator: Optional[torch.Generator] = None
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """M_u uniform plus M_s per-mask pixels of one training batch.
+
+        Returns:
+            flat pixel indices [P] and their mask labels [P] (0 = background), on the batch's device.
+        """
+        if "instance_mask" not in batch:
+            raise ValueError(
+                "the contrastive stage needs instance masks (frames[].instance_mask_path in transforms.json); "
+                "make them with `splatreplace masks DATA` or set --pipeline.contrastive-iterations 0"
+            )
+        return sample_contrastive_pixels(
+            batch["instance_mask"][..., 0],
+            self.config.contrastive_uniform_samples,
+            self.config.contrastive_mask_samples,
+            generator=generator,
+        )

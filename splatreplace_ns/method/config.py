@@ -7,49 +7,66 @@ import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
-from splatreplace_ns.method.model import SplatReplaceModelConfig
+from splatreplace_ns.method.pipeline import SplatReplacePipelineConfig
+
+
+@dataclass
+class SplatReplaceTrainerConfig(TrainerConfig):
+    _target: Type = field(default_factory=lambda: SplatReplaceTrainer)
+    max_num_iterations: int = -1
+    """Total iterations; -1 runs every stage (the sum of --pipeline.base-iterations, --pipeline.contrastive-iterations, ...)."""
+
+
+class SplatReplaceTrainer(Trainer):
+    """nerfstudio's Trainer; the only change is that the run length follows the stage schedule."""
+
+    def __init__(self, config: SplatReplaceTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        if config.max_num_iterations <= 0:
+            config.max_num_iterations = config.pipeline.total_iterations
+        super().__init__(config, local_rank, world_size)
 
 
 def _adam(lr: float) -> dict:
     return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
 
 
-def splat_replace_trainer_config(max_num_iterations: int = 30000) -> TrainerConfig:
+def splat_replace_trainer_config(base_iterations: int = 30000, contrastive_iterations: int = 5000) -> TrainerConfig:
     """The full trainer configuration (also used in-process by the CLI, tests and benchmarks)."""
-    return TrainerConfig(
+    return SplatReplaceTrainerConfig(
         method_name="splat-replace",
         steps_per_eval_image=100,
         steps_per_eval_batch=0,
         steps_per_save=2000,
         steps_per_eval_all_images=1000,
-        max_num_iterations=max_num_iterations,
+        max_num_iterations=-1,
         mixed_precision=False,
         # CPU-first: pick the device that exists so `ns-train splat-replace --data DIR` just works.
         machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
-        pipeline=VanillaPipelineConfig(
-            datamanager=SplatReplaceDataManagerConfig(),
-            model=SplatReplaceModelConfig(),
+        pipeline=SplatReplacePipelineConfig(
+            base_iterations=base_iterations, contrastive_iterations=contrastive_iterations
         ),
         optimizers={
             "means": {
                 "optimizer": AdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_num_iterations),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=base_iterations),
             },
             "features_dc": _adam(0.0025),
             "features_rest": _adam(0.0025 / 20),
             "opacities": _adam(0.05),
             "scales": _adam(0.005),
             "quats": _adam(0.001),
+            "features_contrastive": _adam(0.005),
             "exposure": _adam(1e-3),
             "camera_opt": {
                 "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
                 "scheduler": ExponentialDecaySchedulerConfig(
-                    lr_final=5e-7, max_steps=max_num_iterations, warmup_steps=1000, lr_pre_warmup=0
+                    lr_final=5e-7, max_steps=base_iterations, warmup_steps=1000, lr_pre_warmup=0
                 ),
             },
         },
@@ -60,5 +77,5 @@ def splat_replace_trainer_config(max_num_iterations: int = 30000) -> TrainerConf
 
 splat_replace_method = MethodSpecification(
     config=splat_replace_trainer_config(),
-    description="Splat and Replace: shared Gaussian templates for repeated objects (base 3DGS* stage on CPU or CUDA)",
+    description="Splat and Replace: base 3DGS*, contrastive features and one-click 3D instance segmentation (CPU or CUDA)",
 )

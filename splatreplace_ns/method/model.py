@@ -95,6 +95,8 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """auto: gsplat on CUDA, pure torch on CPU. torch: force the torch renderer everywhere."""
     grad_thresh_without_absgrad: float = 0.0002
     """Densification threshold used when absolute gradients are unavailable (torch renderer)."""
+    feature_dim: int = 16
+    """Channels of the per-Gaussian contrastive feature (segmentation stage)."""
 
 
 class SplatReplaceModel(SplatfactoModel):
@@ -139,8 +141,17 @@ class SplatReplaceModel(SplatfactoModel):
                 "features_dc": Parameter(features_dc),
                 "features_rest": Parameter(features_rest),
                 "opacities": Parameter(torch.logit(0.1 * torch.ones(num_points, 1))),
+                # unit-norm random start so that rendered features differ before training
+                "features_contrastive": Parameter(
+                    torch.randn(num_points, self.config.feature_dim) / self.config.feature_dim**0.5
+                ),
             }
         )
+        self.stage = "base"
+        self.highlight: Optional[torch.Tensor] = None  # [N] bool, tinted in viewer renders while selecting
+        # segmentation results: per-Gaussian instance (0 = background) and the instances' metadata
+        self.instance_labels = torch.zeros(num_points, dtype=torch.long)
+        self.instances: List[Dict] = []
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         if self.config.use_exposure_correction:
             self.exposure = Parameter(torch.eye(3, 4).repeat(self.num_train_data, 1, 1))
@@ -180,6 +191,55 @@ class SplatReplaceModel(SplatfactoModel):
             verbose=False,
         )
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+
+    @property
+    def features_contrastive(self) -> torch.Tensor:
+        return self.gauss_params["features_contrastive"]
+
+    def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_gaussian_param_groups()
+        groups["features_contrastive"] = [self.gauss_params["features_contrastive"]]
+        return groups
+
+    def step_post_backward(self, step):
+        # Densification and pruning belong to the base stage; later stages keep the Gaussian set fixed.
+        if self.stage == "base":
+            super().step_post_backward(step)
+
+    def get_extra_state(self) -> Dict:
+        return {"stage": self.stage, "instance_labels": self.instance_labels, "instances": self.instances}
+
+    def set_extra_state(self, state: Dict) -> None:
+        self.stage = state.get("stage", "base")
+        self.instance_labels = state.get("instance_labels", torch.zeros(self.num_points, dtype=torch.long))
+        self.instances = list(state.get("instances", []))
+
+    def render_features(self, camera: Cameras, features: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Renders per-Gaussian features at full resolution with the geometry detached.
+
+        Args:
+            camera: one camera.
+            features: [N, D] features to splat (default: the contrastive features).
+
+        Returns:
+            features [H, W, D], alpha [H, W, 1], depth [H, W, 1].
+        """
+        features = self.features_contrastive if features is None else features
+        viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
+        K = camera.get_intrinsics_matrices()[0].to(self.device)
+        out = rasterize(
+            self.means.detach(),
+            self.quats.detach(),
+            torch.exp(self.scales.detach()),
+            torch.sigmoid(self.opacities.detach()).squeeze(-1),
+            features,
+            viewmat,
+            K,
+            int(camera.width.item()),
+            int(camera.height.item()),
+            backend="gsplat" if self.uses_gsplat else "torch",
+        )
+        return out.image, out.alpha, out.depth
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_param_groups()
@@ -221,6 +281,9 @@ class SplatReplaceModel(SplatfactoModel):
             colors = torch.sigmoid(crop(self.features_dc))
             sh_degree = None
 
+        if not self.training and self.highlight is not None and self.highlight.shape[0] == self.num_points:
+            colors = self._tint(colors, crop(self.highlight.to(colors.device)), sh_degree is not None)
+
         out = rasterize(
             crop(self.means),
             crop(self.quats),
@@ -258,6 +321,17 @@ class SplatReplaceModel(SplatfactoModel):
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
         return {"rgb": rgb, "depth": depth, "accumulation": out.alpha, "background": background}
+
+    @staticmethod
+    def _tint(colors: torch.Tensor, selected: torch.Tensor, is_sh: bool) -> torch.Tensor:
+        """Blends the selected Gaussians' base colour toward red (viewer highlight)."""
+        red = torch.tensor([1.0, 0.15, 0.15], device=colors.device)
+        colors = colors.clone()
+        if is_sh:
+            colors[selected, 0] = 0.4 * colors[selected, 0] + 0.6 * RGB2SH(red)
+        else:
+            colors[selected] = 0.4 * colors[selected] + 0.6 * red
+        return colors
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)

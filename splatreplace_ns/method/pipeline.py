@@ -1,0 +1,267 @@
+"""The stage schedule of ``ns-train splat-replace``, in one place.
+
+Steps ``[0, base)`` train the base 3DGS* model; steps ``[base, base + contrastive)`` train the
+per-Gaussian contrastive features with the geometry frozen; right after the last contrastive step
+the instances are segmented from one click each (``clicks.json`` or the viewer) and leftover
+background Gaussians are removed by space carving (paper §4.1).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Type
+
+import numpy as np
+import torch
+from gsplat.strategy.ops import remove as remove_gaussians
+
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.splatfacto import get_viewmat
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
+from splatreplace_ns.method.model import SplatReplaceModelConfig
+from splatreplace_ns.segment.carving import carve_mask
+from splatreplace_ns.segment.clicks import Click, load_clicks
+from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
+from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
+from splatreplace_ns.segment.select import masks_from_rendered_features
+from splatreplace_ns.viewer.selection import InstanceSelectionControls
+
+
+@dataclass
+class SegmentationConfig:
+    tau: float = 0.1
+    """Cosine-distance threshold between a Gaussian's feature and a click's query (paper: 0.1)."""
+    clicks: Optional[Path] = None
+    """clicks.json with one click per instance (default: clicks.json beside transforms.json)."""
+    interactive: Literal["auto", "always", "never"] = "auto"
+    """auto: wait for clicks in the viewer only when there is no clicks.json and the viewer runs."""
+    carve: bool = True
+    """Remove leftover background Gaussians by space carving."""
+    depth_tolerance: float = 0.02
+    """Relative depth margin for the carving visibility test."""
+    min_alpha: float = 0.5
+    """Pixels with less accumulated opacity stay background in the rendered masks."""
+
+
+@dataclass
+class SplatReplacePipelineConfig(VanillaPipelineConfig):
+    _target: Type = field(default_factory=lambda: SplatReplacePipeline)
+    datamanager: SplatReplaceDataManagerConfig = field(default_factory=SplatReplaceDataManagerConfig)
+    model: SplatReplaceModelConfig = field(default_factory=SplatReplaceModelConfig)
+    base_iterations: int = 30000
+    """Iterations of the base 3DGS* stage."""
+    contrastive_iterations: int = 5000
+    """Iterations of the contrastive-feature stage (paper: 5k; 1k is nearly as good). 0 skips segmentation."""
+    contrastive: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+
+    @property
+    def total_iterations(self) -> int:
+        return self.base_iterations + self.contrastive_iterations
+
+
+class SplatReplacePipeline(VanillaPipeline):
+    config: SplatReplacePipelineConfig
+
+    def __init__(self, config: SplatReplacePipelineConfig, device: str, *args, **kwargs):
+        super().__init__(config, device, *args, **kwargs)
+        self.selection: Optional[InstanceSelection] = None
+        self.segmentation_report: Dict = {}
+        self.instance_masks_2d: Optional[torch.Tensor] = None
+        self.selection_controls = InstanceSelectionControls(self)
+
+    # ------------------------------------------------------------------ stages
+    def stage_at(self, step: int) -> str:
+        if step < self.config.base_iterations:
+            return "base"
+        if step < self.config.total_iterations:
+            return "contrastive"
+        return "segmented"
+
+    def get_train_loss_dict(self, step: int):
+        stage = self.stage_at(step)
+        if stage == "base":
+            self.model.stage = "base"
+            return super().get_train_loss_dict(step)
+        if self.model.stage == "base":
+            CONSOLE.log(f"[bold]step {step}: base stage done ({self.model.num_points} Gaussians); training contrastive features")
+            self.model.stage = "contrastive"
+        camera, batch = self.datamanager.next_train(step)
+        pixel_index, labels = self.datamanager.sample_contrastive_pixels(batch)
+        features, _, _ = self.model.render_features(camera)
+        losses = contrastive_loss(features.reshape(-1, features.shape[-1])[pixel_index], labels, self.config.contrastive)
+        return {}, losses, {}
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration))
+        return callbacks
+
+    def _after_iteration(self, step: int) -> None:
+        if self.config.contrastive_iterations > 0 and step == self.config.total_iterations - 1:
+            self.run_segmentation()
+
+    # ------------------------------------------------------------ segmentation
+    def clicks_path(self) -> Path:
+        if self.config.segmentation.clicks is not None:
+            return Path(self.config.segmentation.clicks)
+        data = Path(self.datamanager.get_datapath())
+        return (data.parent if data.suffix == ".json" else data) / "clicks.json"
+
+    def train_index_of(self, file_path: str) -> int:
+        names = [Path(p).name for p in self.datamanager.train_dataset.image_filenames]
+        name = Path(file_path).name
+        if name not in names:
+            raise SelectionError(f"click on '{file_path}': not a training image (clicks must be in training views)")
+        return names.index(name)
+
+    def train_camera(self, index: int) -> Cameras:
+        return self.datamanager.train_dataset.cameras[index : index + 1].to(self.device)
+
+    @torch.no_grad()
+    def begin_selection(self) -> InstanceSelection:
+        """A fresh selection, with the background's feature taken from the training masks."""
+        self.selection = InstanceSelection(
+            gaussian_features=lambda: self.model.features_contrastive.detach(),
+            background_query=self._background_query(),
+            tau=self.config.segmentation.tau,
+        )
+        return self.selection
+
+    @torch.no_grad()
+    def _background_query(self, max_views: int = 8) -> Optional[torch.Tensor]:
+        if not self.datamanager.has_instance_masks:
+            return None
+        dataset = self.datamanager.train_dataset
+        picks = np.linspace(0, len(dataset) - 1, min(max_views, len(dataset))).round().astype(int)
+        feats = []
+        for idx in sorted(set(picks.tolist())):
+            mask = dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0].to(self.device)
+            features, alpha, _ = self.model.render_features(self.train_camera(idx))
+            keep = (mask == 0) & (alpha[..., 0] >= self.config.segmentation.min_alpha)
+            feats.append(torch.nn.functional.normalize(features[keep], dim=-1))
+        feats = torch.cat(feats)
+        return feats.mean(0) if feats.shape[0] else None
+
+    @torch.no_grad()
+    def add_click(self, click: Click) -> None:
+        """One click from clicks.json: the rendered feature at that pixel becomes an instance query."""
+        assert self.selection is not None
+        source = f"click {click.index} ({click.file_path} at {click.xy})"
+        index = self.train_index_of(click.file_path)
+        features, alpha, _ = self.model.render_features(self.train_camera(index))
+        query = query_at_pixel(features, alpha, click.xy[0], click.xy[1], source, self.config.segmentation.min_alpha)
+        instance = self.selection.add(query, click.cls, source)
+        CONSOLE.log(f"instance {instance.id} ({instance.cls}): {instance.num_gaussians} Gaussians from {source}")
+
+    @torch.no_grad()
+    def query_from_ray(self, origin, direction) -> torch.Tensor:
+        """Rendered feature along a viewer click ray (a 16×16 pinhole looking down the ray)."""
+        direction = torch.as_tensor(direction, dtype=torch.float32)
+        forward = direction / direction.norm().clamp_min(1e-8)
+        helper = torch.tensor([0.0, 0.0, 1.0]) if abs(float(forward[2])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
+        right = torch.linalg.cross(forward, helper)
+        right = right / right.norm()
+        up = torch.linalg.cross(right, forward)
+        c2w = torch.stack([right, up, -forward, torch.as_tensor(origin, dtype=torch.float32)], dim=1)  # OpenGL
+        camera = Cameras(
+            camera_to_worlds=c2w[None], fx=40.0, fy=40.0, cx=8.0, cy=8.0, width=16, height=16,
+            camera_type=CameraType.PERSPECTIVE,
+        ).to(self.device)
+        features, alpha, _ = self.model.render_features(camera)
+        return query_at_pixel(features, alpha, 8, 8, "viewer click", self.config.segmentation.min_alpha)
+
+    def should_wait_for_viewer(self) -> bool:
+        mode = self.config.segmentation.interactive
+        if mode == "never":
+            return False
+        has_viewer = self.selection_controls.viewer_running
+        if mode == "always":
+            return has_viewer
+        return has_viewer and not self.clicks_path().exists()
+
+    def run_segmentation(self) -> Dict:
+        """Selects the instances (clicks.json or viewer), renders their masks, carves the background."""
+        start = time.perf_counter()
+        self.model.eval()
+        self.begin_selection()
+        if self.should_wait_for_viewer():
+            CONSOLE.log("[bold]Click one pixel per instance in the viewer, then press 'Confirm instances'")
+            self.selection_controls.wait_for_confirm()
+        else:
+            path = self.clicks_path()
+            if not path.exists():
+                raise FileNotFoundError(
+                    f"{path}: no clicks for the segmentation stage. Give one click per instance in clicks.json "
+                    "(see README) or run with the viewer to click them"
+                )
+            for click in load_clicks(path):
+                self.add_click(click)
+        report = self.finish_segmentation()
+        report["time_s"] = time.perf_counter() - start
+        self.model.train()
+        return report
+
+    @torch.no_grad()
+    def finish_segmentation(self) -> Dict:
+        assert self.selection is not None
+        if not self.selection.instances:
+            raise SelectionError("no instances were selected; give at least one click")
+        cfg = self.config.segmentation
+        model = self.model
+        queries = self.selection.queries.to(self.device)
+        labels = self.selection.labels().to(self.device)
+
+        cameras = self.datamanager.train_dataset.cameras
+        masks, depths = [], []
+        for idx in range(len(cameras)):
+            camera = cameras[idx : idx + 1].to(self.device)
+            features, alpha, depth = model.render_features(camera)
+            masks.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha))
+            depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])))
+        self.instance_masks_2d = torch.stack(masks).to(torch.int16)
+
+        background = labels == 0
+        removed = 0
+        if cfg.carve and bool(background.any()):
+            viewmats = get_viewmat(cameras.camera_to_worlds.to(self.device))
+            Ks = cameras.get_intrinsics_matrices().to(self.device)
+            carve = carve_mask(
+                model.means.detach()[background], viewmats, Ks, int(cameras.width[0]), int(cameras.height[0]),
+                self.instance_masks_2d > 0, torch.stack(depths), cfg.depth_tolerance,
+            )
+            drop = torch.zeros_like(background)
+            drop[background] = carve
+            removed = int(drop.sum())
+            if removed:
+                optimizers = getattr(model, "optimizers", None)
+                if optimizers is None:  # outside the Trainer (tests, tools): no optimizer state to keep in sync
+                    for name, param in list(model.gauss_params.items()):
+                        model.gauss_params[name] = torch.nn.Parameter(param.detach()[~drop])
+                else:
+                    remove_gaussians(model.gauss_params, optimizers, model.strategy_state, drop)
+                labels = labels[~drop]
+        model.instance_labels = labels.cpu()
+        model.instances = self.selection.summary()
+        model.stage = "segmented"
+        self.segmentation_report = {
+            "instances": model.instances,
+            "carved": removed,
+            "gaussians": model.num_points,
+            "instance_gaussians": int((labels > 0).sum()),
+        }
+        CONSOLE.log(
+            f"[bold]segmentation: {len(model.instances)} instances, {self.segmentation_report['instance_gaussians']} "
+            f"instance Gaussians, {removed} background Gaussians carved"
+        )
+        return self.segmentation_report
+
+    def save_segmentation(self, path: Path) -> None:
+        path.write_text(json.dumps(self.segmentation_report, indent=2))

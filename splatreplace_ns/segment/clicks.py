@@ -1,0 +1,41 @@
+"""``clicks.json``: the non-interactive equivalent of one click per instance."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Tuple
+
+
+@dataclass(frozen=True)
+class Click:
+    index: int
+    """Position in the file (for messages)."""
+    file_path: str
+    """Training image the click is in."""
+    xy: Tuple[float, float]
+    """Pixel (u, v) = (column, row)."""
+    cls: str
+    """Class of the clicked instance."""
+
+
+def load_clicks(path: Path) -> List[Click]:
+    """Reads ``[{"file_path", "xy": [u, v], "class"}, ...]``; errors name the file and the entry."""
+    try:
+        entries = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(entries, list):
+        raise ValueError(f"{path}: expected a list of clicks, got {type(entries).__name__}")
+    clicks = []
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, dict) or "file_path" not in entry or "xy" not in entry:
+            raise ValueError(f"{path}: click {i} needs 'file_path' and 'xy' ([u, v] pixel)")
+        xy = entry["xy"]
+        if not (isinstance(xy, (list, tuple)) and len(xy) == 2 and all(isinstance(c, (int, float)) for c in xy)):
+            raise ValueError(f"{path}: click {i} has 'xy' = {xy!r}; expected [u, v] pixel coordinates")
+        clicks.append(Click(i, str(entry["file_path"]), (float(xy[0]), float(xy[1])), str(entry.get("class", "object"))))
+    if not clicks:
+        raise ValueError(f"{path}: no clicks; give one per instance")
+    return clicks

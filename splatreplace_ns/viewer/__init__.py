@@ -1,0 +1,1 @@
+"""viser viewer interaction: selecting instances with clicks."""

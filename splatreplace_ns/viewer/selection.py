@@ -1,0 +1,104 @@
+"""The viewer's "Select instances" controls.
+
+"Select instances" arms one click in the 3D view; the clicked ray becomes an instance (highlighted,
+listed, undoable). "Confirm instances" ends the selection and lets training continue. The pipeline
+owns an instance of this; nerfstudio's viewer finds the elements on it.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import TYPE_CHECKING, Optional
+
+import torch
+from torch import nn
+
+from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerClick, ViewerControl, ViewerText
+
+from splatreplace_ns.segment.instances import SelectionError
+
+if TYPE_CHECKING:
+    from splatreplace_ns.method.pipeline import SplatReplacePipeline
+
+
+class InstanceSelectionControls(nn.Module):
+    """Viewer GUI for one click per instance (an nn.Module only so the viewer's scan finds it)."""
+
+    def __init__(self, pipeline: "SplatReplacePipeline"):
+        super().__init__()
+        self._pipeline = [pipeline]  # a list keeps the pipeline out of this module's children
+        self._confirmed = threading.Event()
+        self.viewer_control = ViewerControl()
+        self.select_button = ViewerButton("Select instances", cb_hook=lambda _: self.arm_click())
+        self.class_name = ViewerText("Class of next click", default_value="object")
+        self.undo_button = ViewerButton("Undo last instance", cb_hook=lambda _: self.undo())
+        self.confirm_button = ViewerButton("Confirm instances", cb_hook=lambda _: self.confirm())
+        self.instance_list = ViewerText("Instances", default_value="(none)", disabled=True)
+        self.status = ViewerText("Selection status", default_value="waits for the segmentation stage", disabled=True)
+
+    @property
+    def pipeline(self) -> "SplatReplacePipeline":
+        return self._pipeline[0]
+
+    @property
+    def viewer_running(self) -> bool:
+        return getattr(self.viewer_control, "viser_server", None) is not None
+
+    def _say(self, message: str) -> None:
+        self.status.value = message
+
+    def _refresh(self) -> None:
+        selection = self.pipeline.selection
+        items = selection.summary() if selection else []
+        self.instance_list.value = "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
+        model = self.pipeline.model
+        model.highlight = (selection.labels() > 0) if (selection and items) else None
+
+    def arm_click(self) -> None:
+        """Listen for exactly one click (a registered click callback blocks camera controls)."""
+        if self.pipeline.selection is None:
+            self._say("selection opens when training reaches the segmentation stage")
+            return
+        self.viewer_control.register_pointer_cb("click", self.on_click)
+        self._say("click one pixel on an instance")
+
+    def on_click(self, click: ViewerClick) -> Optional[int]:
+        """Adds the clicked instance; a bad click only changes the status message."""
+        if self.viewer_running:
+            self.viewer_control.unregister_pointer_cb()
+        selection = self.pipeline.selection
+        if selection is None:
+            self._say("selection opens when training reaches the segmentation stage")
+            return None
+        try:
+            with torch.no_grad():
+                query = self.pipeline.query_from_ray(click.origin, click.direction)
+            instance = selection.add(query, self.class_name.value or "object", f"viewer click {len(selection.instances) + 1}")
+        except SelectionError as err:
+            self._say(str(err))
+            return None
+        self._refresh()
+        self._say(f"added instance {instance.id} ({instance.cls}, {instance.num_gaussians} Gaussians)")
+        return instance.id
+
+    def undo(self) -> None:
+        selection = self.pipeline.selection
+        removed = selection.undo() if selection else None
+        self._refresh()
+        self._say(f"removed instance {removed.id}" if removed else "nothing to undo")
+
+    def confirm(self) -> None:
+        selection = self.pipeline.selection
+        if selection is None or not selection.instances:
+            self._say("select at least one instance before confirming")
+            return
+        self._say(f"confirmed {len(selection.instances)} instances; training continues")
+        self._confirmed.set()
+
+    def wait_for_confirm(self, poll_s: float = 0.2) -> None:
+        """Blocks the training thread until "Confirm instances" is pressed."""
+        self._confirmed.clear()
+        self._say("click 'Select instances', then one pixel per instance; 'Confirm instances' when done")
+        while not self._confirmed.wait(poll_s):
+            pass
+        self.pipeline.model.highlight = None

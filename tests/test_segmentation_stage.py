@@ -1,0 +1,148 @@
+"""Contrastive stage + one-click segmentation + carving inside the splat-replace run (tiny sim scene)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from splatreplace_ns.method.train import make_trainer_config, run_training
+from splatreplace_ns.segment.clicks import Click
+from splatreplace_ns.segment.instances import SelectionError
+from splatreplace_ns.segment.select import select_gaussians
+from splatreplace_ns.sim import make_scene
+
+
+@pytest.fixture(scope="module")
+def segmented(tmp_path_factory):
+    data = tmp_path_factory.mktemp("tiny") / "tiny"
+    make_scene("tiny", data, n_train=12)
+    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, contrastive_iterations=300)
+    config.pipeline.model.num_downscales = 0
+    config.pipeline.model.warmup_length = 100
+    config.pipeline.datamanager.contrastive_uniform_samples = 1024
+    config.pipeline.datamanager.contrastive_mask_samples = 512
+    trainer = run_training(config)
+    return data, config, trainer
+
+
+def gt_masks(pipeline):
+    ds = pipeline.datamanager.train_dataset
+    return torch.stack([ds.get_data(i, image_type="uint8")["instance_mask"][..., 0] for i in range(len(ds))])
+
+
+def test_clicks_give_one_instance_each_with_matching_masks(segmented):
+    data, _, trainer = segmented
+    pipeline = trainer.pipeline
+    clicks = json.loads((data / "clicks.json").read_text())
+    model = pipeline.model
+    assert model.stage == "segmented"
+    assert [i["class"] for i in model.instances] == [c["class"] for c in clicks]
+    assert model.instance_labels.shape == (model.num_points,)
+    for k in range(1, len(clicks) + 1):
+        assert (model.instance_labels == k).sum() > 10
+    # rendered training-view masks against the ground truth (click k carries the GT id)
+    gt = gt_masks(pipeline)
+    ours = pipeline.instance_masks_2d.long()
+    ious = []
+    for k, click in enumerate(clicks, start=1):
+        a, b = ours == k, gt == click["id"]
+        ious.append(float((a & b).sum()) / float((a | b).sum()))
+    assert min(ious) > 0.75, ious
+    assert pipeline.segmentation_report["carved"] >= 0
+
+
+def test_bad_clicks_change_nothing(segmented):
+    data, _, trainer = segmented
+    pipeline = trainer.pipeline
+    pipeline.model.eval()
+    selection = pipeline.begin_selection()
+    clicks = json.loads((data / "clicks.json").read_text())
+    first = Click(0, clicks[0]["file_path"], tuple(clicks[0]["xy"]), clicks[0]["class"])
+    pipeline.add_click(first)
+    before = [i.id for i in selection.instances]
+
+    with pytest.raises(SelectionError, match="same Gaussians as instance 1"):
+        pipeline.add_click(Click(1, first.file_path, first.xy, "crate"))
+    with pytest.raises(SelectionError, match="outside the 64x48 image"):
+        pipeline.add_click(Click(2, first.file_path, (64.0, 10.0), "crate"))
+    with pytest.raises(SelectionError, match="not a training image"):
+        pipeline.add_click(Click(3, "images/nope.png", (3.0, 3.0), "crate"))
+    # a floor/wall pixel: background in the ground-truth mask of that view
+    idx = pipeline.train_index_of(first.file_path)
+    mask = pipeline.datamanager.train_dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0]
+    rows, cols = torch.nonzero(mask == 0, as_tuple=True)
+    with pytest.raises(SelectionError, match="background|nothing is rendered"):
+        pipeline.add_click(Click(4, first.file_path, (float(cols[0]), float(rows[0])), "crate"))
+    assert [i.id for i in selection.instances] == before
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_viewer_click_flow_selects_the_clicked_instance(segmented):
+    """Drives the viewer's click callback (viser → nerfstudio ViewerClick → our handler) headlessly."""
+    import viser
+    from viser._scene_handles import ScenePointerEvent
+
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    data, _, trainer = segmented
+    pipeline = trainer.pipeline
+    pipeline.model.eval()
+    selection = pipeline.begin_selection()
+    controls = pipeline.selection_controls
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    try:
+        controls.viewer_control._setup(types.SimpleNamespace(viser_server=server))
+        click = json.loads((data / "clicks.json").read_text())[1]
+        idx = pipeline.train_index_of(click["file_path"])
+        camera = pipeline.datamanager.train_dataset.cameras[idx]
+        c2w = camera.camera_to_worlds  # OpenGL
+        u, v = click["xy"]
+        ray_cam = torch.tensor([(u + 0.5 - float(camera.cx)) / float(camera.fx), -(v + 0.5 - float(camera.cy)) / float(camera.fy), -1.0])
+        direction = c2w[:, :3] @ (ray_cam / ray_cam.norm())
+        origin = c2w[:, 3]
+
+        controls.arm_click()
+        callback = server.scene._scene_pointer_cb
+        assert callback is not None, "Select instances did not register a click callback"
+        callback(ScenePointerEvent(
+            client=None, client_id=0, event_type="click",
+            ray_origin=tuple((origin * VISER_NERFSTUDIO_SCALE_RATIO).tolist()),
+            ray_direction=tuple(direction.tolist()), screen_pos=((0.5, 0.5),),
+        ))
+        assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"
+        assert len(selection.instances) == 1, controls.status.value
+        chosen = selection.labels() == 1
+        # the same instance as the clicks.json path selects for that pixel
+        expected = select_gaussians(pipeline.model.features_contrastive.detach(), pipeline.model.render_features(
+            pipeline.train_camera(idx))[0][int(v), int(u)][None], pipeline.config.segmentation.tau) == 1
+        iou = float((chosen & expected).sum()) / float((chosen | expected).sum())
+        assert iou > 0.9, iou
+        assert pipeline.model.highlight is not None and bool(pipeline.model.highlight.any())
+
+        controls.undo()
+        assert selection.instances == [] and "(none)" in controls.instance_list.value
+        controls.confirm()  # nothing selected: refuses, stays open
+        assert "at least one" in controls.status.value
+    finally:
+        server.stop()
+        pipeline.model.highlight = None
+
+
+def test_checkpoint_keeps_segmentation(segmented, tmp_path):
+    _, config, trainer = segmented
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(config.get_base_dir() / "config.yml")
+    assert pipeline.model.stage == "segmented"
+    assert len(pipeline.model.instances) == 3
+    assert pipeline.model.instance_labels.shape == (pipeline.model.num_points,)
