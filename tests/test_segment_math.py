@@ -96,3 +96,19 @@ def test_carving_removes_only_gaussians_hidden_by_instances_in_every_view():
     remove = carve_mask(means, views, torch.stack([K, K]), W, H, masks, depths)
     assert remove.tolist() == [True, False, True, True]
     assert carve_mask(torch.zeros(0, 3), views, torch.stack([K, K]), W, H, masks, depths).shape == (0,)
+
+
+def test_segmentation_scores_hand_made_case():
+    from splatreplace_ns.eval.segmentation import segmentation_scores
+
+    gt = torch.zeros(1, 4, 4, dtype=torch.long)
+    gt[0, :2, :2] = 5  # 4 pixels
+    gt[0, 2:, 2:] = 7  # 4 pixels
+    pred = torch.zeros_like(gt)
+    pred[0, :2, :3] = 1  # covers gt 5 plus 2 background pixels
+    pred[0, 3, 3] = 2  # 1 of 4 pixels of gt 7
+    scores = segmentation_scores(pred, gt, {1: 5, 2: 7})
+    assert scores["iou"] == {5: 4 / 6, 7: 1 / 4}
+    assert abs(scores["miou"] - (4 / 6 + 1 / 4) / 2) < 1e-12
+    # accuracies: instance 5 → 1, instance 7 → 1/4, background → 6/8
+    assert abs(scores["macc"] - (1 + 0.25 + 0.75) / 3) < 1e-12

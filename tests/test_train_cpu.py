@@ -18,7 +18,7 @@ from splatreplace_ns.method.train import evaluate_test_views, make_trainer_confi
 def trained(tmp_path_factory):
     data = tmp_path_factory.mktemp("gauss_scene")
     write_gaussian_scene(data, n_views=12, width=64, height=48)
-    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), max_num_iterations=600)
+    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), base_iterations=600)
     model = config.pipeline.model
     model.background_color = "black"  # the scene was rendered on black
     model.num_downscales = 0

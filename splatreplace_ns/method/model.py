@@ -95,6 +95,9 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """auto: gsplat on CUDA, pure torch on CPU. torch: force the torch renderer everywhere."""
     grad_thresh_without_absgrad: float = 0.0002
     """Densification threshold used when absolute gradients are unavailable (torch renderer)."""
+    num_downscales: int = 0
+    """Train at 1/2^d resolution at first (splatfacto uses 2). Off by default: with the short schedules
+    typical on CPU, Gaussians fitted at low resolution leave holes at full resolution."""
     feature_dim: int = 16
     """Channels of the per-Gaussian contrastive feature (segmentation stage)."""
 

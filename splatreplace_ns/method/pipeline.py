@@ -203,9 +203,12 @@ class SplatReplacePipeline(VanillaPipeline):
                     "(see README) or run with the viewer to click them"
                 )
             for click in load_clicks(path):
-                self.add_click(click)
+                try:
+                    self.add_click(click)
+                except SelectionError as err:  # one bad click must not throw away the training run
+                    CONSOLE.log(f"[bold yellow]skipped: {err}")
         report = self.finish_segmentation()
-        report["time_s"] = time.perf_counter() - start
+        report["time_s"] = time.perf_counter() - start  # also kept in self.segmentation_report
         self.model.train()
         return report
 

@@ -18,6 +18,7 @@ def make_trainer_config(
     *,
     experiment_name: Optional[str] = None,
     steps_per_save: Optional[int] = None,
+    progress: bool = False,
 ) -> TrainerConfig:
     """splat-replace's TrainerConfig set up for an unattended run (no viewer, no evaluation mid-run)."""
     config = splat_replace_trainer_config(base_iterations, contrastive_iterations)
@@ -30,7 +31,9 @@ def make_trainer_config(
     config.steps_per_eval_image = max_num_iterations + 1
     config.steps_per_eval_all_images = max_num_iterations + 1
     config.steps_per_save = steps_per_save or max_num_iterations
-    config.logging.local_writer.enable = False
+    # the local writer prints step, time per step and ETA: the progress display of long runs
+    config.logging.local_writer.enable = progress
+    config.logging.steps_per_log = max(1, max_num_iterations // 50)
     return config
 
 

@@ -1,0 +1,260 @@
+"""``splatreplace bench segment``: 3D instance segmentation on the synthetic presets (paper §4.1, Fig. 6).
+
+Two runs of ``ns-train splat-replace`` (in process, nerfstudio's Trainer) on one preset:
+
+* ``reg`` — the default 3DGS* base (opacity/scale L1 on), then the contrastive stage. Test-view masks
+  are scored after 1k contrastive iterations and at the end (5k by default); leftover background
+  Gaussians near the instances are counted before and after space carving.
+* ``none`` — the same without the L1 regularisation and without carving, for the leftover count.
+
+Test-view masks come from rendering the features in the test cameras and thresholding against the
+click queries (τ = 0.1); they are scored against the ground-truth masks (mIoU, mAcc; see
+``splatreplace_ns.eval.segmentation``). Leftovers = background-labelled Gaussians whose centres lie
+inside an instance's ground-truth mesh or within 1 % of its bounding-box diagonal from it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+from splatreplace_ns.eval.segmentation import segmentation_scores
+from splatreplace_ns.segment.clicks import load_clicks
+from splatreplace_ns.segment.instances import SelectionError
+from splatreplace_ns.segment.select import masks_from_rendered_features
+
+
+@dataclass
+class BenchSegmentConfig:
+    """Segmentation mIoU/mAcc, leftover background Gaussians and time per stage on a sim preset."""
+
+    preset: str = "office"
+    """Synthetic preset (office, temple, chess, ...)."""
+    json: Optional[Path] = None
+    """Where to write the results as JSON."""
+    res: str = "160x120"
+    """Scene resolution WxH."""
+    n_train: int = 60
+    """Training views."""
+    n_test: int = 12
+    """Test views."""
+    base_iterations: int = 3000
+    """Base 3DGS* iterations."""
+    contrastive_iterations: int = 5000
+    """Contrastive iterations of the main run (scores are also taken at 1k)."""
+    early_contrastive_iterations: int = 1000
+    """Where the early score (miou_1k) is taken."""
+    data_root: Path = Path("benchmarks/data")
+    """Generated scenes are kept here and reused."""
+    out_dir: Path = Path("benchmarks/runs")
+    """Training outputs."""
+    skip_noreg: bool = False
+    """Skip the run without regularisation (then leftover.none is null)."""
+
+    def main(self) -> Dict:
+        result = run_segment_bench(self)
+        print_table(result)
+        if self.json is not None:
+            self.json.parent.mkdir(parents=True, exist_ok=True)
+            self.json.write_text(json.dumps(result, indent=2) + "\n")
+            print(f"wrote {self.json}")
+        return result
+
+
+def _scene(cfg: BenchSegmentConfig) -> Path:
+    from splatreplace_ns.sim import make_scene
+
+    data = cfg.data_root / f"{cfg.preset}_{cfg.res}_{cfg.n_train}_{cfg.n_test}"
+    if not (data / "transforms.json").exists():
+        make_scene(cfg.preset, data, res=cfg.res, seed=0, n_train=cfg.n_train, n_test=cfg.n_test)
+    return data
+
+
+@torch.no_grad()
+def score_test_views(pipeline, clicks_path: Path) -> Dict:
+    """Selects the instances from the clicks (no carving) and scores test-view masks."""
+    pipeline.model.eval()
+    selection = pipeline.begin_selection()
+    clicks = load_clicks(clicks_path)
+    raw = json.loads(clicks_path.read_text())
+    pred_to_gt, failures = {}, []
+    for click in clicks:
+        gt_id = int(raw[click.index].get("id", click.index + 1))
+        try:
+            pipeline.add_click(click)
+        except SelectionError as err:  # scored as a missed instance (IoU 0), not a crash
+            failures.append(str(err))
+            pred_to_gt[-(click.index + 1)] = gt_id
+            continue
+        pred_to_gt[selection.instances[-1].id] = gt_id
+    queries = selection.queries.to(pipeline.device)
+    cfg = pipeline.config.segmentation
+    dataset = pipeline.datamanager.eval_dataset
+    preds, gts = [], []
+    for idx in range(len(dataset)):
+        camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
+        features, alpha, _ = pipeline.model.render_features(camera)
+        preds.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha).cpu())
+        gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
+    scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
+    scores["labels"] = selection.labels().cpu()
+    scores["failures"] = failures
+    pipeline.model.train()
+    return scores
+
+
+def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01) -> int:
+    """Background Gaussians inside an instance or within ``near`` × its bounding-box diagonal of it.
+
+    Args:
+        means: [N, 3] centres in the normalised world frame.
+        labels: [N] instance labels (0 = background).
+        instances: dataparser instances with ``transform_matrix`` (object→normalised world) and ``class``.
+    """
+    import open3d as o3d
+
+    from splatreplace_ns.sim import class_mesh
+
+    background = means[labels == 0].double()
+    hit = torch.zeros(background.shape[0], dtype=torch.bool)
+    scenes = {}
+    for inst in instances:
+        if "transform_matrix" not in inst or background.shape[0] == 0:
+            continue
+        if inst["class"] not in scenes:
+            mesh = class_mesh(inst["class"])
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+            diag = float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound()))
+            scenes[inst["class"]] = (scene, diag)
+        scene, diag = scenes[inst["class"]]
+        to_object = torch.linalg.inv(inst["transform_matrix"].double())
+        local = (background @ to_object[:3, :3].T + to_object[:3, 3]).float().numpy()
+        signed = scene.compute_signed_distance(o3d.core.Tensor(local)).numpy()
+        hit |= torch.from_numpy(signed <= near * diag)
+    return int(hit.sum())
+
+
+def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, carve: bool, contrastive: int, probes: Dict[int, str]):
+    from splatreplace_ns.method.train import make_trainer_config
+
+    config = make_trainer_config(data, cfg.out_dir / cfg.preset, cfg.base_iterations, contrastive, experiment_name=name)
+    config.pipeline.model.num_downscales = 0
+    if not regularise:
+        config.pipeline.model.opacity_l1_lambda = 0.0
+        config.pipeline.model.scale_l1_lambda = 0.0
+    config.pipeline.segmentation.carve = carve
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline = trainer.pipeline
+    record: Dict = {"time_s": {}}
+    marks = {"start": time.perf_counter()}
+    instances = pipeline.datamanager.train_dataparser_outputs.metadata["instances"]
+
+    def probe(step: int) -> None:
+        if step == cfg.base_iterations - 1:
+            marks["base_done"] = time.perf_counter()
+        if step in probes:
+            t0 = time.perf_counter()
+            scores = score_test_views(pipeline, data / "clicks.json")
+            record[probes[step]] = {
+                "miou": scores["miou"],
+                "macc": scores["macc"],
+                "iou": scores["iou"],
+                "failures": scores["failures"],
+                "leftover": count_leftovers(pipeline.model.means.detach().cpu(), scores["labels"], instances),
+            }
+            marks[f"probe_{step}"] = time.perf_counter() - t0
+            if step == cfg.base_iterations + contrastive - 1:
+                marks["contrastive_done"] = time.perf_counter()
+
+    # before the pipeline's own segmentation callback at the last step
+    trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], probe))
+    trainer.train()
+    end = time.perf_counter()
+    probe_s = sum(v for k, v in marks.items() if k.startswith("probe_"))
+    record["time_s"] = {
+        "base": marks["base_done"] - marks["start"],
+        "contrastive": marks["contrastive_done"] - marks["base_done"] - probe_s,
+        "segmentation": pipeline.segmentation_report.get("time_s", float("nan")),
+        "total": end - marks["start"],
+    }
+    record["carved"] = pipeline.segmentation_report.get("carved", 0)
+    record["leftover_final"] = count_leftovers(
+        pipeline.model.means.detach().cpu(), pipeline.model.instance_labels, instances
+    )
+    record["gaussians"] = pipeline.model.num_points
+    return record
+
+
+def run_segment_bench(cfg: BenchSegmentConfig) -> Dict:
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    t0 = time.perf_counter()
+    data = _scene(cfg)
+    sim_s = time.perf_counter() - t0
+    last = cfg.base_iterations + cfg.contrastive_iterations - 1
+    early = cfg.base_iterations + cfg.early_contrastive_iterations - 1
+    reg = _train(cfg, data, "reg", True, True, cfg.contrastive_iterations, {early: "early", last: "final"})
+    noreg = None
+    if not cfg.skip_noreg:
+        noreg = _train(
+            cfg, data, "noreg", False, False, cfg.early_contrastive_iterations,
+            {cfg.base_iterations + cfg.early_contrastive_iterations - 1: "final"},
+        )
+    import nerfstudio
+
+    return {
+        "benchmark": "segment",
+        "preset": cfg.preset,
+        "miou": reg["final"]["miou"],
+        "macc": reg["final"]["macc"],
+        "miou_1k": reg["early"]["miou"],
+        "miou_5k": reg["final"]["miou"],
+        "macc_1k": reg["early"]["macc"],
+        "iou_per_instance": reg["final"]["iou"],
+        "click_failures": {"1k": reg["early"]["failures"], "final": reg["final"]["failures"]},
+        "leftover": {
+            "none": None if noreg is None else noreg["final"]["leftover"],
+            "reg": reg["final"]["leftover"],
+            "reg_carve": reg["leftover_final"],
+        },
+        "carved": reg["carved"],
+        "time_s": {"sim": sim_s, **reg["time_s"], **({"noreg_total": noreg["time_s"]["total"]} if noreg else {})},
+        "parameters": {
+            "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+            "contrastive_iterations": cfg.contrastive_iterations,
+            "early_contrastive_iterations": cfg.early_contrastive_iterations,
+        },
+        "machine": {
+            "platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
+            "nerfstudio": nerfstudio.__version__ if hasattr(nerfstudio, "__version__") else "1.1.5",
+        },
+    }
+
+
+def print_table(result: Dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"segmentation on '{result['preset']}' (test views)")
+    for col in ("mIoU", "mAcc", "mIoU@1k", "mIoU@end", "leftover none", "leftover reg", "leftover reg+carve"):
+        table.add_column(col)
+    lo = result["leftover"]
+    table.add_row(
+        f"{result['miou']:.4f}", f"{result['macc']:.4f}", f"{result['miou_1k']:.4f}", f"{result['miou_5k']:.4f}",
+        str(lo["none"]), str(lo["reg"]), str(lo["reg_carve"]),
+    )
+    Console().print(table)
+    Console().print("time per stage (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["time_s"].items()))

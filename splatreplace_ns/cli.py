@@ -1,0 +1,47 @@
+"""``splatreplace``: command-line tools around the splat-replace nerfstudio method."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Union
+
+import tyro
+from typing_extensions import Annotated
+
+from splatreplace_ns.bench.render import BenchRenderConfig
+from splatreplace_ns.bench.segment import BenchSegmentConfig
+from splatreplace_ns.bench.sim import BenchSimConfig
+from splatreplace_ns.demo import DemoCommand
+from splatreplace_ns.sim import SimCommand
+
+BenchCommands = Union[
+    Annotated[BenchRenderConfig, tyro.conf.subcommand("render")],
+    Annotated[BenchSimConfig, tyro.conf.subcommand("sim")],
+    Annotated[BenchSegmentConfig, tyro.conf.subcommand("segment")],
+]
+
+
+@dataclass
+class BenchCommand:
+    """Benchmarks: print a table and write JSON (machine, versions, wall time beside accuracy)."""
+
+    which: tyro.conf.OmitArgPrefixes[BenchCommands]
+
+    def main(self) -> None:
+        self.which.main()
+
+
+Commands = Union[
+    Annotated[SimCommand, tyro.conf.subcommand("sim", description="Write a synthetic repetitive scene with ground truth.")],
+    Annotated[DemoCommand, tyro.conf.subcommand("demo", description="Run the method on the embedded default scene.")],
+    Annotated[BenchCommand, tyro.conf.subcommand("bench")],
+]
+
+
+def entrypoint() -> None:
+    command = tyro.cli(tyro.conf.OmitSubcommandPrefixes[Commands])
+    command.main()
+
+
+if __name__ == "__main__":
+    entrypoint()
