@@ -41,6 +41,8 @@ def test_base_stage_fits_training_views(trained):
             rgb = pipeline.model.get_outputs_for_camera(camera)["rgb"]
         mse = torch.mean((rgb - gt[..., :3]) ** 2)
         psnrs.append(float(-10 * torch.log10(mse)))
+    # gsplat's DefaultStrategy ran on CPU: the 300 seed Gaussians were densified and/or pruned
+    assert pipeline.model.num_points != 300
     assert min(psnrs) > 22.0, psnrs
     assert sum(psnrs) / len(psnrs) >= 25.0, psnrs
 

@@ -163,7 +163,7 @@ class SplatReplacePipeline(VanillaPipeline):
 
     @torch.no_grad()
     def query_from_ray(self, origin, direction) -> torch.Tensor:
-        """Rendered feature along a viewer click ray (a 16×16 pinhole looking down the ray)."""
+        """Rendered feature along a viewer click ray (a 16×16 pinhole whose pixel (8, 8) is centred on the ray)."""
         direction = torch.as_tensor(direction, dtype=torch.float32)
         forward = direction / direction.norm().clamp_min(1e-8)
         helper = torch.tensor([0.0, 0.0, 1.0]) if abs(float(forward[2])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
@@ -172,7 +172,7 @@ class SplatReplacePipeline(VanillaPipeline):
         up = torch.linalg.cross(right, forward)
         c2w = torch.stack([right, up, -forward, torch.as_tensor(origin, dtype=torch.float32)], dim=1)  # OpenGL
         camera = Cameras(
-            camera_to_worlds=c2w[None], fx=40.0, fy=40.0, cx=8.0, cy=8.0, width=16, height=16,
+            camera_to_worlds=c2w[None], fx=40.0, fy=40.0, cx=8.5, cy=8.5, width=16, height=16,
             camera_type=CameraType.PERSPECTIVE,
         ).to(self.device)
         features, alpha, _ = self.model.render_features(camera)
