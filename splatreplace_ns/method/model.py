@@ -28,7 +28,7 @@ from nerfstudio.utils.colors import get_color
 
 from splatreplace_ns.eval.perceptual import LocalLPIPS
 from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
-from splatreplace_ns.render import rasterize
+from splatreplace_ns.render import rasterize, resolve_backend
 
 allow_numpy_scalars_in_checkpoints()
 
@@ -109,8 +109,11 @@ class SplatReplaceModel(SplatfactoModel):
 
     @property
     def uses_gsplat(self) -> bool:
-        device = str(self.kwargs.get("device", "cpu"))
-        return self.config.render_backend != "torch" and device.startswith("cuda")
+        """Whether renders go through gsplat (CUDA) — decided once, as the renderer would decide it."""
+        if not hasattr(self, "_uses_gsplat"):
+            device = torch.device(str(self.kwargs.get("device", "cpu")))
+            self._uses_gsplat = resolve_backend(self.config.render_backend, device) == "gsplat"
+        return self._uses_gsplat
 
     def populate_modules(self):
         # Written out rather than calling super(): splatfacto's version calls .cuda() and builds
