@@ -6,6 +6,16 @@ from splatreplace_ns.register.errors import geodesic_deg, rotation_error_deg, tr
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp
 from splatreplace_ns.register.lifting import backproject, project
 from splatreplace_ns.register.matching import MATCHERS, Features, Matcher, make_matcher, match, rank_view_pairs
+from splatreplace_ns.register.pipeline import (
+    InstanceGaussians,
+    InstanceViews,
+    RegistrationConfig,
+    RegistrationResult,
+    choose_templates,
+    register_instance,
+    register_instances,
+    render_instance_views,
+)
 from splatreplace_ns.register.pnp import (
     PnPResult,
     RelativePose,
@@ -17,6 +27,14 @@ from splatreplace_ns.register.virtual_cameras import fit_sphere, framing_distanc
 
 __all__ = [
     "MATCHERS",
+    "InstanceGaussians",
+    "InstanceViews",
+    "RegistrationConfig",
+    "RegistrationResult",
+    "choose_templates",
+    "register_instance",
+    "register_instances",
+    "render_instance_views",
     "Features",
     "Matcher",
     "PnPResult",

@@ -1,0 +1,560 @@
+"""End-to-end instance registration (paper §4.2): every instance of a class onto its template.
+
+For each class the template is the instance with the most Gaussians. Each other instance (the source) is
+registered to it by
+
+1. rendering both instances from virtual cameras on a sphere around each (5 azimuths × 5 elevations),
+2. ranking all source × template view pairs with a fast matcher and keeping the top ``k``,
+3. matching those pairs with a robust matcher,
+4. lifting the source matches to 3D with the source's rendered depth (world frame) and solving PnP-RANSAC
+   against the template keypoints in the template's virtual camera, which gives the source→template rigid
+   transform; the pair with the most inliers wins,
+5. refining with ICP on the Gaussian centres.
+
+Ablations (paper Table "registration"): ``method="no_virtual_views"`` renders from given cameras (the
+training views) instead of the sphere; ``method="fpfh"`` replaces steps 1–4 by FPFH + RANSAC on the centres.
+
+Conventions: transforms are 4×4 rigid matrices ``T`` with ``template ≈ T · source`` (both in world
+coordinates), i.e. ``T`` maps the source instance's world points onto the template instance. View
+matrices are world→camera (OpenCV); pixel ``(col, row)`` has its centre at ``(col + 0.5, row + 0.5)``.
+Nothing here raises on a registration that does not work out: the result says ``success=False`` and why.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+
+from splatreplace_ns.register.icp import fpfh_ransac, refine_icp
+from splatreplace_ns.register.lifting import backproject
+from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
+from splatreplace_ns.register.pnp import relative_transform_from_pnp
+from splatreplace_ns.register.virtual_cameras import fit_sphere, framing_distance, sphere_cameras
+
+METHODS = ("ours", "no_virtual_views", "fpfh")
+
+
+@dataclass
+class RegistrationConfig:
+    """Settings of :func:`register_instance` (defaults from the paper where it gives them).
+
+    Attributes:
+        n_azimuth, n_elevation: virtual camera grid (paper: 5 × 5 = 25 views per instance).
+        elevation_range_deg: elevations of the grid, degrees (z up).
+        image_size: (W, H) of the rendered views.
+        fov_deg: horizontal field of view of the virtual cameras, degrees.
+        framing_margin: camera distance = margin × the distance at which the instance's bounding sphere
+            just fits the smaller field of view.
+        top_k: view pairs kept after fast matching (paper: 10).
+        fast_matcher: matcher that ranks all view pairs ("xfeat" in the paper; falls back to "sift" when
+            XFeat cannot be loaded).
+        robust_matcher: matcher run on the top-k pairs (the paper uses MASt3R, which has no offline
+            weights here). "xfeat" by default: on small renders of sparsely textured Gaussians SIFT finds
+            too few correct matches (see the tests); "sift" / "orb" are selectable.
+        min_matches: a pair with fewer lifted matches than this is skipped.
+        min_inliers: a PnP solution with fewer inliers than this is rejected.
+        pnp_max_error_px: PnP-RANSAC inlier threshold (pixels).
+        min_alpha: keypoints whose rendered opacity is below this are ignored (no reliable depth).
+        background: RGB of the background the views are rendered on.
+        icp: refine with ICP on the Gaussian centres.
+        icp_max_distance_rel: ICP correspondence distance, relative to the template's bounding-sphere radius
+            (finest stage).
+        icp_schedule: multipliers of that distance for coarse-to-fine ICP stages (last one should be 1).
+        icp_point_to_plane: point-to-plane (True) or point-to-point ICP.
+        method: "ours" | "no_virtual_views" (render from given cameras) | "fpfh" (FPFH + RANSAC on the
+            centres, then optional ICP).
+        select: how the pose is picked among the posed top-k pairs: "inliers" (the paper: most PnP
+            inliers, then ICP) or "photometric" (ICP from every candidate, keep the alignment whose
+            overlapping centres agree best in colour; guards against weak matchers locking onto
+            look-alike views, e.g. a box turned by 180°).
+        color_tolerance: mean absolute RGB difference under which two overlapping centres agree.
+        min_photometric_fitness: with select="photometric", a best score below this is a failure.
+        fpfh_voxel_rel: FPFH voxel size relative to the template radius.
+        fpfh_restarts: RANSAC restarts for FPFH (best fitness kept).
+        min_fitness: the final ICP/FPFH fitness (fraction of source centres with a template centre within
+            the finest distance) below which a result counts as a failure.
+        seed: RANSAC seed.
+    """
+
+    n_azimuth: int = 5
+    n_elevation: int = 5
+    elevation_range_deg: tuple[float, float] = (-30.0, 60.0)
+    image_size: tuple[int, int] = (128, 96)
+    fov_deg: float = 50.0
+    framing_margin: float = 1.05
+    top_k: int = 10
+    fast_matcher: str = "xfeat"
+    robust_matcher: str = "xfeat"
+    min_matches: int = 4
+    min_inliers: int = 8
+    pnp_max_error_px: float = 3.0
+    min_alpha: float = 0.5
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    icp: bool = True
+    icp_max_distance_rel: float = 0.05
+    icp_schedule: tuple[float, ...] = (4.0, 2.0, 1.0)
+    icp_point_to_plane: bool = True
+    method: str = "ours"
+    select: str = "photometric"
+    color_tolerance: float = 0.1
+    min_photometric_fitness: float = 0.0
+    fpfh_voxel_rel: float = 0.08
+    fpfh_restarts: int = 3
+    min_fitness: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"RegistrationConfig.method must be one of {METHODS}, got {self.method!r}")
+        if self.select not in ("inliers", "photometric"):
+            raise ValueError(f"RegistrationConfig.select must be 'inliers' or 'photometric', got {self.select!r}")
+        if self.top_k < 1 or self.n_azimuth < 1 or self.n_elevation < 1:
+            raise ValueError("RegistrationConfig: top_k, n_azimuth and n_elevation must be >= 1")
+
+
+@dataclass
+class InstanceGaussians:
+    """The Gaussians of one instance (a subset of the scene's), in world coordinates.
+
+    Attributes:
+        means: (N, 3) centres.
+        quats: (N, 4) rotations, wxyz (any norm).
+        scales: (N, 3) linear scales (not log).
+        opacities: (N,) in [0, 1] (not logits).
+        colors: (N, 3) RGB in [0, 1], or (N, K, 3) SH coefficients (then ``sh_degree`` gives the degree;
+            if None it is inferred from K = (d + 1)²).
+        sh_degree: SH degree of ``colors`` or None for plain RGB.
+        id: instance id (used in results and messages).
+    Arrays may be numpy or torch (any device; CUDA tensors render with gsplat).
+    """
+
+    means: Any
+    quats: Any
+    scales: Any
+    opacities: Any
+    colors: Any
+    sh_degree: Optional[int] = None
+    id: Optional[int] = None
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    def centres(self) -> np.ndarray:
+        """(N, 3) float64 numpy copy of the centres."""
+        return _np(self.means).reshape(-1, 3)
+
+
+@dataclass
+class InstanceViews:
+    """Rendered views of one instance (output of :func:`render_instance_views`).
+
+    Attributes:
+        images: (V, H, W, 3) float32 RGB in [0, 1]; depths: (V, H, W) float32 z-depth (0 = empty);
+        alphas: (V, H, W) float32; viewmats: (V, 4, 4) float64 world→camera; Ks: (V, 3, 3) float64.
+    """
+
+    images: np.ndarray
+    depths: np.ndarray
+    alphas: np.ndarray
+    viewmats: np.ndarray
+    Ks: np.ndarray
+
+    def __iter__(self):  # unpack as (images, depths, alphas, viewmats, K)
+        K = self.Ks[0] if len(self.Ks) and np.allclose(self.Ks, self.Ks[:1]) else self.Ks
+        return iter((self.images, self.depths, self.alphas, self.viewmats, K))
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(W, H)."""
+        return int(self.images.shape[2]), int(self.images.shape[1])
+
+
+@dataclass
+class RegistrationResult:
+    """Source→template registration of one instance.
+
+    Attributes:
+        instance_id, template_id: ids of the source and of its class template.
+        transform: (4, 4) float64 rigid, template ≈ transform · source (world frame); identity on failure.
+        success: whether a pose was found.
+        num_inliers: PnP inliers of the chosen view pair (0 for the template / fpfh).
+        fitness: fraction of source centres with a template centre within the ICP distance after
+            registration (FPFH inlier fraction when ICP is off; 1 for the template itself).
+        message: what happened (names the instance on failure).
+        time_s: wall time of this registration.
+        pair: (source view, template view) of the chosen pair, or None.
+        coarse_transform: (4, 4) transform before ICP.
+    """
+
+    instance_id: int
+    template_id: int
+    transform: np.ndarray = field(default_factory=lambda: np.eye(4))
+    success: bool = False
+    num_inliers: int = 0
+    fitness: float = 0.0
+    message: str = ""
+    time_s: float = 0.0
+    pair: Optional[tuple[int, int]] = None
+    coarse_transform: Optional[np.ndarray] = None
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _np(x) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def _torch(x, device: torch.device) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x.detach().to(device=device, dtype=torch.float32)
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)
+
+
+def _name(inst: InstanceGaussians) -> str:
+    return f"instance {inst.id}" if inst.id is not None else "instance"
+
+
+_MATCHER_CACHE: dict[str, Matcher] = {}
+
+
+def get_matcher(name: str, fallback: str = "sift") -> Matcher:
+    """A cached matcher by name; if it cannot be built (e.g. XFeat weights missing), warn and use
+    ``fallback``."""
+    if name not in _MATCHER_CACHE:
+        try:
+            _MATCHER_CACHE[name] = make_matcher(name)
+        except (ImportError, RuntimeError, OSError) as exc:
+            if name == fallback:
+                raise
+            warnings.warn(f"matcher {name!r} unavailable ({exc}); using {fallback!r}", stacklevel=2)
+            _MATCHER_CACHE[name] = get_matcher(fallback, fallback)
+    return _MATCHER_CACHE[name]
+
+
+def instance_sphere(inst: InstanceGaussians) -> tuple[np.ndarray, float]:
+    """Robust bounding sphere of the instance's centres → center (3,), radius."""
+    return fit_sphere(inst.centres())
+
+
+def choose_templates(instance_ids_by_class: dict[str, Sequence[int]], gaussian_counts: dict[int, int]) -> dict[str, int]:
+    """Template of each class: the instance with the most Gaussians (ties: the smallest id).
+
+    Args:
+        instance_ids_by_class: {class name: [instance ids]} (non-empty lists).
+        gaussian_counts: {instance id: number of Gaussians}.
+    Returns:
+        {class name: template instance id}.
+    """
+    out = {}
+    for cls, ids in instance_ids_by_class.items():
+        ids = list(ids)
+        if not ids:
+            raise ValueError(f"class {cls!r} has no instances")
+        missing = [i for i in ids if i not in gaussian_counts]
+        if missing:
+            raise ValueError(f"class {cls!r}: no Gaussian count for instance(s) {missing}")
+        out[cls] = min(ids, key=lambda i: (-int(gaussian_counts[i]), i))
+    return out
+
+
+def _virtual_cameras(inst: InstanceGaussians, cfg: RegistrationConfig) -> tuple[np.ndarray, np.ndarray]:
+    width, height = cfg.image_size
+    center, radius = instance_sphere(inst)
+    fov_h = cfg.fov_deg
+    fov_v = math.degrees(2.0 * math.atan(math.tan(math.radians(fov_h) / 2.0) * height / width))
+    dist = framing_distance(radius, min(fov_h, fov_v), cfg.framing_margin)
+    viewmats, K = sphere_cameras(
+        center, dist, width, height, fov_h, cfg.n_azimuth, cfg.n_elevation, cfg.elevation_range_deg
+    )
+    return viewmats, np.broadcast_to(K, (len(viewmats), 3, 3)).copy()
+
+
+def render_instance_views(
+    inst: InstanceGaussians,
+    cfg: RegistrationConfig,
+    cameras: Optional[tuple[Any, Any]] = None,
+) -> InstanceViews:
+    """Render an instance alone from the virtual sphere cameras (or from given cameras).
+
+    Args:
+        inst: the instance's Gaussians.
+        cfg: uses n_azimuth, n_elevation, elevation_range_deg, image_size (W, H), fov_deg, framing_margin,
+            background.
+        cameras: optional (viewmats (V, 4, 4) world→camera, K (3, 3) or (V, 3, 3)) rendered at
+            ``cfg.image_size`` instead of the sphere (the "no virtual views" ablation uses training cameras).
+    Returns:
+        :class:`InstanceViews`; unpacks as ``images (V, H, W, 3), depths (V, H, W), alphas (V, H, W),
+        viewmats (V, 4, 4), K (3, 3)`` (K is (V, 3, 3) when the views' intrinsics differ).
+    """
+    from splatreplace_ns.render import rasterize
+
+    width, height = (int(v) for v in cfg.image_size)
+    if cameras is None:
+        viewmats, Ks = _virtual_cameras(inst, cfg)
+    else:
+        viewmats = _np(cameras[0]).reshape(-1, 4, 4)
+        Ks = _np(cameras[1])
+        Ks = np.broadcast_to(Ks.reshape(-1, 3, 3), (len(viewmats), 3, 3)).copy()
+    dev = inst.means.device if isinstance(inst.means, torch.Tensor) else torch.device("cpu")
+    means = _torch(inst.means, dev).reshape(-1, 3)
+    n = means.shape[0]
+    quats = _torch(inst.quats, dev).reshape(n, 4)
+    scales = _torch(inst.scales, dev).reshape(n, 3)
+    opac = _torch(inst.opacities, dev).reshape(n)
+    colors = _torch(inst.colors, dev)
+    sh_degree = inst.sh_degree
+    if colors.dim() == 3 and sh_degree is None:
+        sh_degree = int(round(math.sqrt(colors.shape[1]))) - 1
+    elif colors.dim() == 2 and sh_degree is not None:
+        raise ValueError(f"{_name(inst)}: sh_degree={sh_degree} but colors are (N, D), not SH (N, K, 3)")
+    bg = torch.tensor(cfg.background, dtype=torch.float32, device=dev)
+    V = len(viewmats)
+    images = np.zeros((V, height, width, 3), np.float32)
+    depths = np.zeros((V, height, width), np.float32)
+    alphas = np.zeros((V, height, width), np.float32)
+    with torch.no_grad():
+        for v in range(V):
+            out = rasterize(
+                means, quats, scales, opac, colors, _torch(viewmats[v], dev), _torch(Ks[v], dev),
+                width, height, sh_degree=sh_degree, background=bg,
+            )
+            images[v] = out.image[..., :3].clamp(0.0, 1.0).cpu().numpy()
+            depths[v] = out.depth[..., 0].cpu().numpy()
+            alphas[v] = out.alpha[..., 0].cpu().numpy()
+    return InstanceViews(images, depths, alphas, viewmats, Ks)
+
+
+def _fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> float:
+    """Fraction of T·src points with a tgt point within ``dist``."""
+    from scipy.spatial import cKDTree
+
+    if len(src) == 0 or len(tgt) == 0:
+        return 0.0
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    d, _ = cKDTree(tgt).query(moved, k=1, distance_upper_bound=dist)
+    return float(np.isfinite(d).mean())
+
+
+def _refine(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, radius: float, cfg: RegistrationConfig):
+    """Coarse-to-fine ICP on centres; keeps the initial pose if ICP lowers the fitness. → T, fitness."""
+    base = cfg.icp_max_distance_rel * radius
+    fit0 = _fitness(src, tgt, init, base)
+    if not cfg.icp:
+        return init, fit0
+    T = init
+    for mult in cfg.icp_schedule:
+        T, _, _ = refine_icp(src, tgt, T, max_distance=mult * base, point_to_plane=cfg.icp_point_to_plane)
+    fit = _fitness(src, tgt, T, base)
+    if not np.isfinite(T).all() or fit < fit0:
+        return init, fit0
+    return T, fit
+
+
+_SH_C0 = 0.28209479177387814
+
+
+def _base_rgb(inst: InstanceGaussians) -> np.ndarray:
+    """(N, 3) view-independent colour: the RGB itself, or the SH DC term mapped like gsplat (c0·C + 0.5)."""
+    c = _np(inst.colors)
+    if c.ndim == 3:
+        return np.clip(_SH_C0 * c[:, 0, :] + 0.5, 0.0, 1.0)
+    return c[:, :3]
+
+
+def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float) -> float:
+    """Fraction of T·src centres that have a tgt centre within ``dist`` whose colour is within ``tol``
+    (mean absolute RGB difference). Rejects alignments that fit the shape but not the appearance (e.g. a
+    box turned by 180°)."""
+    from scipy.spatial import cKDTree
+
+    if len(src) == 0 or len(tgt) == 0:
+        return 0.0
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    d, idx = cKDTree(tgt).query(moved, k=1, distance_upper_bound=dist)
+    hit = np.isfinite(d)
+    ok = np.zeros(len(src), dtype=bool)
+    ok[hit] = np.abs(src_rgb[hit] - tgt_rgb[idx[hit]]).mean(axis=1) < tol
+    return float(ok.mean())
+
+
+# ----------------------------------------------------------------------------- registration
+
+
+def _register_fpfh(source, template, cfg, t0) -> RegistrationResult:
+    src, tgt = source.centres(), template.centres()
+    _, radius = instance_sphere(template)
+    sid = -1 if source.id is None else source.id
+    tid = -1 if template.id is None else template.id
+    T, fit = fpfh_ransac(src, tgt, voxel=cfg.fpfh_voxel_rel * radius, seed=cfg.seed, restarts=cfg.fpfh_restarts)
+    if fit <= 0.0:
+        return RegistrationResult(sid, tid, message=f"{_name(source)}: FPFH + RANSAC found no alignment",
+                                  time_s=time.perf_counter() - t0)
+    coarse = T
+    T, fit_icp = _refine(src, tgt, T, radius, cfg)
+    fit = fit_icp if cfg.icp else fit
+    ok = fit >= cfg.min_fitness
+    msg = f"{_name(source)}: FPFH + RANSAC" + (" + ICP" if cfg.icp else "") + f", fitness {fit:.3f}"
+    if not ok:
+        msg += f" < min_fitness {cfg.min_fitness}"
+    return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, 0, fit, msg, time.perf_counter() - t0,
+                              None, coarse)
+
+
+def register_instance(
+    source: InstanceGaussians,
+    template: InstanceGaussians,
+    cfg: Optional[RegistrationConfig] = None,
+    template_views: Optional[InstanceViews] = None,
+    cameras: Optional[tuple[Any, Any]] = None,
+) -> RegistrationResult:
+    """Register one instance onto its template (paper §4.2).
+
+    Args:
+        source: the instance to register; template: its class template.
+        cfg: settings (default :class:`RegistrationConfig`).
+        template_views: pre-rendered template views (from :func:`render_instance_views` with the same
+            cfg/cameras) to reuse across sources.
+        cameras: (viewmats (V, 4, 4), K) to render both instances from, required by
+            ``method="no_virtual_views"`` (ignored otherwise).
+    Returns:
+        :class:`RegistrationResult` with ``transform`` (4, 4): template ≈ T · source. Never raises because
+        registration fails: ``success=False`` and ``message`` names the instance.
+    """
+    cfg = cfg or RegistrationConfig()
+    t0 = time.perf_counter()
+    sid = -1 if source.id is None else source.id
+    tid = -1 if template.id is None else template.id
+
+    def fail(msg: str) -> RegistrationResult:
+        return RegistrationResult(sid, tid, message=f"{_name(source)}: {msg}", time_s=time.perf_counter() - t0)
+
+    if source.num_gaussians < 3 or template.num_gaussians < 3:
+        return fail(f"too few Gaussians (source {source.num_gaussians}, template {template.num_gaussians})")
+    if cfg.method == "fpfh":
+        return _register_fpfh(source, template, cfg, t0)
+    if cfg.method == "no_virtual_views":
+        if cameras is None:
+            raise ValueError("method='no_virtual_views' needs cameras=(viewmats, K) (e.g. the training cameras)")
+    else:
+        cameras = None
+
+    src_views = render_instance_views(source, cfg, cameras)
+    tpl_views = template_views if template_views is not None else render_instance_views(template, cfg, cameras)
+    width, height = src_views.size
+    src_masks = src_views.alphas > cfg.min_alpha
+    tpl_masks = tpl_views.alphas > cfg.min_alpha
+    if not src_masks.any():
+        return fail("not visible in any view (empty renders)")
+
+    fast = get_matcher(cfg.fast_matcher)
+    robust = get_matcher(cfg.robust_matcher)
+    pairs = rank_view_pairs(fast, list(src_views.images), list(tpl_views.images), k=cfg.top_k,
+                            masks_a=list(src_masks), masks_b=list(tpl_masks))
+
+    candidates = []  # (num_inliers, i, j, coarse transform)
+    reasons = []
+    for i, j, _count in pairs:
+        uv_s, uv_t, _ = robust.match(src_views.images[i], tpl_views.images[j], src_masks[i], tpl_masks[j])
+        if len(uv_s) < cfg.min_matches:
+            reasons.append(f"pair ({i},{j}): {len(uv_s)} matches")
+            continue
+        pts, valid = backproject(uv_s, src_views.depths[i], src_views.Ks[i], src_views.viewmats[i])
+        if valid.sum() < cfg.min_matches:
+            reasons.append(f"pair ({i},{j}): {int(valid.sum())} matches with depth")
+            continue
+        rel = relative_transform_from_pnp(
+            pts[valid], uv_t[valid], tpl_views.Ks[j], tpl_views.viewmats[j], width, height,
+            max_error_px=cfg.pnp_max_error_px, min_inliers=max(4, cfg.min_inliers), seed=cfg.seed,
+        )
+        if not rel.success:
+            reasons.append(f"pair ({i},{j}): PnP {rel.pnp.reason}")
+            continue
+        candidates.append((rel.num_inliers, i, j, rel.transform))
+    if not candidates:
+        detail = "; ".join(reasons[:3]) if reasons else "no view pairs"
+        return fail(f"registration failed, no view pair gave a pose ({detail})")
+
+    candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
+    _, radius = instance_sphere(template)
+    src_c, tpl_c = source.centres(), template.centres()
+    if cfg.select == "inliers":  # the paper: the pair with the most PnP inliers, then ICP
+        n_inl, i, j, coarse = candidates[0]
+        T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
+        score = None
+    else:  # refine every candidate, keep the most photometrically consistent alignment
+        src_rgb, tpl_rgb = _base_rgb(source), _base_rgb(template)
+        best = None
+        for n_inl, i, j, coarse in candidates:
+            T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
+            score = _photometric_fitness(src_c, src_rgb, tpl_c, tpl_rgb, T, cfg.icp_max_distance_rel * radius,
+                                         cfg.color_tolerance)
+            key = (score, n_inl)
+            if best is None or key > best[0]:
+                best = (key, n_inl, i, j, coarse, T, fit)
+        (score, _), n_inl, i, j, coarse, T, fit = best
+    ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
+    msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
+    msg += (", ICP" if cfg.icp else "") + f", fitness {fit:.3f}"
+    if score is not None:
+        msg += f", photometric fitness {score:.3f}"
+    if not ok:
+        msg = (f"{_name(source)}: registration rejected (fitness {fit:.3f}, min {cfg.min_fitness}; "
+               f"photometric fitness {score if score is not None else float('nan'):.3f}, "
+               f"min {cfg.min_photometric_fitness})")
+    return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
+                              time.perf_counter() - t0, (i, j), coarse)
+
+
+def register_instances(
+    instances: dict[int, InstanceGaussians],
+    classes: dict[int, str],
+    cfg: Optional[RegistrationConfig] = None,
+    cameras: Optional[tuple[Any, Any]] = None,
+) -> dict[int, RegistrationResult]:
+    """Register every instance to the template of its class.
+
+    Args:
+        instances: {instance id: its Gaussians}.
+        classes: {instance id: class name} (every id of ``instances``).
+        cfg: settings (default :class:`RegistrationConfig`).
+        cameras: (viewmats (V, 4, 4), K) for ``method="no_virtual_views"``.
+    Returns:
+        {instance id: :class:`RegistrationResult`}; each template (and a class's only instance) gets the
+        identity with ``success=True``.
+    """
+    cfg = cfg or RegistrationConfig()
+    missing = sorted(set(instances) - set(classes))
+    if missing:
+        raise ValueError(f"no class for instance(s) {missing}")
+    by_class: dict[str, list[int]] = {}
+    for iid in sorted(instances):
+        by_class.setdefault(classes[iid], []).append(iid)
+    templates = choose_templates(by_class, {i: instances[i].num_gaussians for i in instances})
+    results: dict[int, RegistrationResult] = {}
+    for cls, ids in by_class.items():
+        tid = templates[cls]
+        template = instances[tid] if instances[tid].id == tid else replace(instances[tid], id=tid)
+        results[tid] = RegistrationResult(tid, tid, np.eye(4), True, 0, 1.0, f"instance {tid}: template of {cls!r}")
+        sources = [i for i in ids if i != tid]
+        if not sources:
+            continue
+        tpl_views = None
+        if cfg.method != "fpfh":
+            use_cams = cameras if cfg.method == "no_virtual_views" else None
+            if cfg.method == "no_virtual_views" and cameras is None:
+                raise ValueError("method='no_virtual_views' needs cameras=(viewmats, K) (e.g. the training cameras)")
+            tpl_views = render_instance_views(template, cfg, use_cams)
+        for sid in sources:
+            src = instances[sid] if instances[sid].id == sid else replace(instances[sid], id=sid)
+            results[sid] = register_instance(src, template, cfg, tpl_views, cameras)
+    return {i: results[i] for i in sorted(results)}
