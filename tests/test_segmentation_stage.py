@@ -13,7 +13,6 @@ import torch
 from splatreplace_ns.method.train import make_trainer_config, run_training
 from splatreplace_ns.segment.clicks import Click
 from splatreplace_ns.segment.instances import SelectionError
-from splatreplace_ns.segment.select import select_gaussians
 from splatreplace_ns.sim import make_scene
 
 
@@ -122,13 +121,12 @@ def test_viewer_click_flow_selects_the_clicked_instance(segmented):
         assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"
         assert len(selection.instances) == 1, controls.status.value
         chosen = selection.labels() == 1
-        # the same instance as the clicks.json path selects for that pixel
-        expected = select_gaussians(pipeline.model.features_contrastive.detach(), pipeline.model.render_features(
-            pipeline.train_camera(idx))[0][int(v), int(u)][None], pipeline.config.segmentation.tau) == 1
-        iou = float((chosen & expected).sum()) / float((chosen | expected).sum())
-        assert iou > 0.8, iou
-        # and it is the instance that the finished segmentation gave to this click (the second one)
-        assert float((pipeline.model.instance_labels[chosen] == 2).float().mean()) > 0.95
+        # it is the instance that the finished segmentation gave to this click (the second one):
+        # nearly all selected Gaussians belong to it, and they cover most of it
+        instance = pipeline.model.instance_labels == 2
+        precision = float((chosen & instance).sum()) / float(chosen.sum())
+        recall = float((chosen & instance).sum()) / float(instance.sum())
+        assert precision > 0.95 and recall > 0.5, (precision, recall)
         assert pipeline.model.highlight is not None and bool(pipeline.model.highlight.any())
 
         controls.undo()

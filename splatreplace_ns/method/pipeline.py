@@ -163,7 +163,11 @@ class SplatReplacePipeline(VanillaPipeline):
 
     @torch.no_grad()
     def query_from_ray(self, origin, direction) -> torch.Tensor:
-        """Rendered feature along a viewer click ray (a 16×16 pinhole whose pixel (8, 8) is centred on the ray)."""
+        """Rendered feature along a viewer click ray.
+
+        Renders a small pinhole view whose centre pixel is centred on the ray, with the focal length of
+        the training cameras so that features blend as they did in training.
+        """
         direction = torch.as_tensor(direction, dtype=torch.float32)
         forward = direction / direction.norm().clamp_min(1e-8)
         helper = torch.tensor([0.0, 0.0, 1.0]) if abs(float(forward[2])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
@@ -171,12 +175,15 @@ class SplatReplacePipeline(VanillaPipeline):
         right = right / right.norm()
         up = torch.linalg.cross(right, forward)
         c2w = torch.stack([right, up, -forward, torch.as_tensor(origin, dtype=torch.float32)], dim=1)  # OpenGL
+        train_cameras = self.datamanager.train_dataset.cameras
+        focal = float(train_cameras.fx.median())
+        size, centre = 33, 16
         camera = Cameras(
-            camera_to_worlds=c2w[None], fx=40.0, fy=40.0, cx=8.5, cy=8.5, width=16, height=16,
+            camera_to_worlds=c2w[None], fx=focal, fy=focal, cx=centre + 0.5, cy=centre + 0.5, width=size, height=size,
             camera_type=CameraType.PERSPECTIVE,
         ).to(self.device)
         features, alpha, _ = self.model.render_features(camera)
-        return query_at_pixel(features, alpha, 8, 8, "viewer click", self.config.segmentation.min_alpha)
+        return query_at_pixel(features, alpha, centre, centre, "viewer click", self.config.segmentation.min_alpha)
 
     def should_wait_for_viewer(self) -> bool:
         mode = self.config.segmentation.interactive
