@@ -81,3 +81,20 @@ def write_gaussian_scene(
     }
     (out / "transforms.json").write_text(json.dumps(meta, indent=1))
     return {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors, "K": K}
+
+
+def sample_mesh(mesh, n: int, seed: int):
+    """Area-weighted uniform surface samples of an open3d TriangleMesh, seeded.
+
+    Returns:
+        points [n, 3] and the mesh's total area.
+    """
+    rng = np.random.default_rng(seed)
+    v = np.asarray(mesh.vertices)
+    f = np.asarray(mesh.triangles)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    tri = rng.choice(len(f), size=n, p=area / area.sum())
+    r1, r2 = rng.random((2, n, 1))
+    s = np.sqrt(r1)
+    return (1 - s) * a[tri] + s * (1 - r2) * b[tri] + s * r2 * c[tri], float(area.sum())

@@ -24,6 +24,7 @@ from splatreplace_ns.register import (
     translation_error_rel,
 )
 from splatreplace_ns.register.virtual_cameras import look_at
+from scenes import sample_mesh
 from splatreplace_ns.sim import CLASS_SYMMETRY, class_mesh
 
 torch.set_num_threads(1)
@@ -50,19 +51,6 @@ def apply(T, p):
 
 def inv(T):
     return rigid(T[:3, :3].T, -T[:3, :3].T @ T[:3, 3])
-
-
-def sample_mesh(mesh, n, seed):
-    """Area-weighted uniform surface samples (N, 3) of an open3d TriangleMesh, numpy-seeded."""
-    rng = np.random.default_rng(seed)
-    v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.triangles)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    tri = rng.choice(len(f), size=n, p=area / area.sum())
-    r1, r2 = rng.random((2, n, 1))
-    s = np.sqrt(r1)
-    return (1 - s) * a[tri] + s * (1 - r2) * b[tri] + s * r2 * c[tri]
 
 
 # ---------------------------------------------------------------- virtual cameras
@@ -193,8 +181,8 @@ def test_relative_transform_from_pnp():
 
 def test_icp_chair_small_motion():
     mesh = class_mesh("chair")
-    target = sample_mesh(mesh, 4000, seed=4)
-    source_obj = sample_mesh(mesh, 4000, seed=5)
+    target = sample_mesh(mesh, 4000, seed=4)[0]
+    source_obj = sample_mesh(mesh, 4000, seed=5)[0]
     T_src = rigid(rot([0.3, 0.5, 1.0], 5.0), [0.03, -0.02, 0.01])  # source = T_src · object
     source = apply(T_src, source_obj)
     T, fitness, rmse = refine_icp(source, target, np.eye(4), max_distance=0.1)
@@ -209,8 +197,8 @@ def test_icp_symmetric_pawn():
     mesh = class_mesh("pawn")
     sym = CLASS_SYMMETRY["pawn"]
     assert sym == "rot_z:inf"
-    target = sample_mesh(mesh, 3000, seed=6)
-    source_obj = sample_mesh(mesh, 3000, seed=7)
+    target = sample_mesh(mesh, 3000, seed=6)[0]
+    source_obj = sample_mesh(mesh, 3000, seed=7)[0]
     T_src = rigid(rot([0.1, 0.2, 1.0], 8.0), [0.004, -0.003, 0.002])
     source = apply(T_src, source_obj)
     diag = float(np.linalg.norm(target.max(0) - target.min(0)))
@@ -222,8 +210,8 @@ def test_icp_symmetric_pawn():
 
 def test_fpfh_ransac_chair_large_rotation():
     mesh = class_mesh("chair")
-    target = sample_mesh(mesh, 5000, seed=8)
-    source_obj = sample_mesh(mesh, 5000, seed=9)
+    target = sample_mesh(mesh, 5000, seed=8)[0]
+    source_obj = sample_mesh(mesh, 5000, seed=9)[0]
     T_src = rigid(rot([0.2, -0.3, 1.0], 60.0), [0.5, -0.3, 0.2])
     source = apply(T_src, source_obj)
     diag = float(np.linalg.norm(target.max(0) - target.min(0)))

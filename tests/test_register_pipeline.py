@@ -22,6 +22,7 @@ from splatreplace_ns.register.pipeline import (
     register_instances,
     render_instance_views,
 )
+from scenes import sample_mesh
 from splatreplace_ns.sim import class_mesh, load_scene_meshes, make_scene
 from splatreplace_ns.sim.textures import albedo
 
@@ -30,19 +31,6 @@ torch.set_num_threads(1)
 N_POINTS = 3000
 # The defaults: 128 × 96 views, the paper's 5 × 5 sphere, top-10 pairs (a few seconds per instance on one thread).
 FAST = dict(image_size=(128, 96))
-
-
-def sample_mesh(mesh, n, seed):
-    """Area-weighted uniform surface samples (n, 3) of an open3d TriangleMesh."""
-    rng = np.random.default_rng(seed)
-    v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.triangles)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    tri = rng.choice(len(f), size=n, p=area / area.sum())
-    r1, r2 = rng.random((2, n, 1))
-    s = np.sqrt(r1)
-    return (1 - s) * a[tri] + s * (1 - r2) * b[tri] + s * r2 * c[tri], float(area.sum())
 
 
 def oracle_gaussians(mesh_world, pose, cls, n=N_POINTS, seed=0, grey=False):
