@@ -10,19 +10,14 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
+from splatreplace_ns.register.virtual_cameras import look_at
+
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-def look_at_cv(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """[4, 4] camera→world in the OpenCV convention (x right, y down, z forward)."""
-    forward = target - eye
-    forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(up))
-    right = right / np.linalg.norm(right)
-    down = np.cross(forward, right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, forward, eye
-    return c2w
+def look_at_cv(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """[4, 4] camera→world in the OpenCV convention (x right, y down, z forward), z up in the world."""
+    return np.linalg.inv(look_at(eye, target))
 
 
 def write_gaussian_scene(

@@ -65,7 +65,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         if "instance_mask" not in batch:
             raise ValueError(
                 "the contrastive stage needs instance masks (frames[].instance_mask_path in transforms.json); "
-                "make them with `splatreplace masks DATA` or set --pipeline.contrastive-iterations 0"
+                "add them, or set --pipeline.contrastive-iterations 0 to train the base stage only"
             )
         return sample_contrastive_pixels(
             batch["instance_mask"][..., 0],

@@ -364,7 +364,3 @@ class SplatReplaceModel(SplatfactoModel):
         if lpips is not None:
             metrics["lpips"] = lpips
         return metrics, {"img": combined_rgb}
-
-    def lpips_status(self) -> Optional[str]:
-        """None when LPIPS is computed, otherwise why it is unavailable."""
-        return None if self.lpips.available else self.lpips.unavailable_reason

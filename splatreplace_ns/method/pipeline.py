@@ -8,7 +8,6 @@ background Gaussians are removed by space carving (paper §4.1).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +25,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
+from splatreplace_ns.register.virtual_cameras import look_at
 from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.segment.clicks import Click, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
@@ -65,6 +65,9 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     @property
     def total_iterations(self) -> int:
         return self.base_iterations + self.contrastive_iterations
+
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 class SplatReplacePipeline(VanillaPipeline):
@@ -168,13 +171,9 @@ class SplatReplacePipeline(VanillaPipeline):
         Renders a small pinhole view whose centre pixel is centred on the ray, with the focal length of
         the training cameras so that features blend as they did in training.
         """
-        direction = torch.as_tensor(direction, dtype=torch.float32)
-        forward = direction / direction.norm().clamp_min(1e-8)
-        helper = torch.tensor([0.0, 0.0, 1.0]) if abs(float(forward[2])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
-        right = torch.linalg.cross(forward, helper)
-        right = right / right.norm()
-        up = torch.linalg.cross(right, forward)
-        c2w = torch.stack([right, up, -forward, torch.as_tensor(origin, dtype=torch.float32)], dim=1)  # OpenGL
+        origin = np.asarray(origin, dtype=np.float64)
+        viewmat = look_at(origin, origin + np.asarray(direction, dtype=np.float64))  # world→camera, OpenCV
+        c2w = torch.from_numpy(np.linalg.inv(viewmat) @ OPENCV_TO_OPENGL).float()[:3]
         train_cameras = self.datamanager.train_dataset.cameras
         focal = float(train_cameras.fx.median())
         size, centre = 33, 16
@@ -272,6 +271,3 @@ class SplatReplacePipeline(VanillaPipeline):
             f"instance Gaussians, {removed} background Gaussians carved"
         )
         return self.segmentation_report
-
-    def save_segmentation(self, path: Path) -> None:
-        path.write_text(json.dumps(self.segmentation_report, indent=2))
