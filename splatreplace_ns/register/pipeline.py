@@ -26,6 +26,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
@@ -56,7 +57,11 @@ class RegistrationConfig:
             XFeat cannot be loaded).
         robust_matcher: matcher run on the top-k pairs (the paper uses MASt3R, which has no offline
             weights here). "xfeat" by default: on small renders of sparsely textured Gaussians SIFT finds
-            too few correct matches (see the tests); "sift" / "orb" are selectable.
+            too few correct matches (see the tests); "sift" / "orb" / "xfeat-lighterglue" / "onnx" are
+            selectable.
+        onnx_model: path of the .onnx model used where ``fast_matcher`` or ``robust_matcher`` is "onnx"
+            (an extractor or a pair matcher, e.g. an exported XFeat or MASt3R; the I/O contract is in
+            :mod:`splatreplace_ns.register.onnx_matcher`). Required by "onnx"; ignored otherwise.
         min_matches: a pair with fewer lifted matches than this is skipped.
         min_inliers: a PnP solution with fewer inliers than this is rejected.
         pnp_max_error_px: PnP-RANSAC inlier threshold (pixels).
@@ -91,6 +96,7 @@ class RegistrationConfig:
     top_k: int = 10
     fast_matcher: str = "xfeat"
     robust_matcher: str = "xfeat"
+    onnx_model: Optional[str] = None
     min_matches: int = 4
     min_inliers: int = 8
     pnp_max_error_px: float = 3.0
@@ -116,6 +122,8 @@ class RegistrationConfig:
             raise ValueError(f"RegistrationConfig.select must be 'inliers' or 'photometric', got {self.select!r}")
         if self.top_k < 1 or self.n_azimuth < 1 or self.n_elevation < 1:
             raise ValueError("RegistrationConfig: top_k, n_azimuth and n_elevation must be >= 1")
+        if "onnx" in (self.fast_matcher, self.robust_matcher) and not self.onnx_model:
+            raise ValueError('RegistrationConfig: matcher "onnx" needs onnx_model (the path of an .onnx file)')
 
 
 @dataclass
@@ -224,21 +232,32 @@ def _name(inst: InstanceGaussians) -> str:
     return f"instance {inst.id}" if inst.id is not None else "instance"
 
 
-_MATCHER_CACHE: dict[str, Matcher] = {}
+_MATCHER_CACHE: dict[tuple, Matcher] = {}
 
 
-def get_matcher(name: str, fallback: str = "sift") -> Matcher:
+def get_matcher(name: str, fallback: str = "sift", onnx_model: Optional[str] = None) -> Matcher:
     """A cached matcher by name; if it cannot be built (e.g. XFeat weights missing), warn and use
-    ``fallback``."""
-    if name not in _MATCHER_CACHE:
+    ``fallback``. "onnx" runs the model at ``onnx_model`` (cached per file) and never falls back: a missing
+    path or a bad model raises."""
+    if name == "onnx":
+        if not onnx_model:
+            raise ValueError('matcher "onnx" needs a model: set RegistrationConfig.onnx_model to an .onnx file')
+        path = Path(onnx_model).expanduser().resolve()
+        stamp = path.stat().st_mtime_ns if path.is_file() else None  # a re-exported file is loaded afresh
+        key = ("onnx", str(path), stamp)
+        if key not in _MATCHER_CACHE:
+            _MATCHER_CACHE[key] = make_matcher("onnx", model_path=path)
+        return _MATCHER_CACHE[key]
+    key = (name,)
+    if key not in _MATCHER_CACHE:
         try:
-            _MATCHER_CACHE[name] = make_matcher(name)
+            _MATCHER_CACHE[key] = make_matcher(name)
         except (ImportError, RuntimeError, OSError) as exc:
             if name == fallback:
                 raise
             warnings.warn(f"matcher {name!r} unavailable ({exc}); using {fallback!r}", stacklevel=2)
-            _MATCHER_CACHE[name] = get_matcher(fallback, fallback)
-    return _MATCHER_CACHE[name]
+            _MATCHER_CACHE[key] = get_matcher(fallback, fallback)
+    return _MATCHER_CACHE[key]
 
 
 def instance_sphere(inst: InstanceGaussians) -> tuple[np.ndarray, float]:
@@ -456,8 +475,8 @@ def register_instance(
     if not src_masks.any():
         return fail("not visible in any view (empty renders)")
 
-    fast = get_matcher(cfg.fast_matcher)
-    robust = get_matcher(cfg.robust_matcher)
+    fast = get_matcher(cfg.fast_matcher, onnx_model=cfg.onnx_model)
+    robust = get_matcher(cfg.robust_matcher, onnx_model=cfg.onnx_model)
     pairs = rank_view_pairs(fast, list(src_views.images), list(tpl_views.images), k=cfg.top_k,
                             masks_a=list(src_masks), masks_b=list(tpl_masks))
 
