@@ -272,7 +272,7 @@ def _inlier_rate(uv_a, uv_b, Hm):
     return float((np.linalg.norm(pred - uv_b, axis=1) < 3.0).mean())
 
 
-@pytest.mark.parametrize("backend", ["sift", "orb", "xfeat"])
+@pytest.mark.parametrize("backend", ["sift", "orb", "xfeat", "xfeat-lighterglue"])
 def test_matcher_consistent_with_homography(backend):
     img_a, img_b, Hm, mask_b = _warp_pair()
     matcher = make_matcher(backend)
