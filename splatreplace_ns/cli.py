@@ -8,6 +8,7 @@ from typing import Union
 import tyro
 from typing_extensions import Annotated
 
+from splatreplace_ns.bench.register import BenchRegisterConfig
 from splatreplace_ns.bench.render import BenchRenderConfig
 from splatreplace_ns.bench.segment import BenchSegmentConfig
 from splatreplace_ns.bench.sim import BenchSimConfig
@@ -18,6 +19,7 @@ BenchCommands = Union[
     Annotated[BenchRenderConfig, tyro.conf.subcommand("render")],
     Annotated[BenchSimConfig, tyro.conf.subcommand("sim")],
     Annotated[BenchSegmentConfig, tyro.conf.subcommand("segment")],
+    Annotated[BenchRegisterConfig, tyro.conf.subcommand("register")],
 ]
 
 

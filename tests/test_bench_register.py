@@ -1,0 +1,201 @@
+"""``splatreplace bench register``: ground-truth labelling of Gaussians, pose errors, and the bench end to end
+on the ``tiny`` preset (64×48, a few hundred iterations)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from splatreplace_ns.bench.register import (
+    BenchRegisterConfig,
+    load_bench_scene,
+    match_segments_to_ground_truth,
+    pose_errors,
+    rigid_part,
+    scale_intrinsics,
+)
+from splatreplace_ns.register.virtual_cameras import look_at
+from splatreplace_ns.segment.gt_labels import labels_from_masks
+
+torch.set_num_threads(1)
+
+INTERFACE_KEYS = {"method", "rot_err_deg_mean", "rot_err_deg_max", "trans_err_rel_mean", "failures", "time_s_per_instance"}
+
+
+# ----------------------------------------------------------------------------- labels_from_masks
+
+
+def _hand_made_case():
+    """Three views from one camera at the origin looking along +z (f = 1, 4×4 pixels, principal point (2, 2)):
+    a point (x, y, 1) lands in pixel (floor(x + 2), floor(y + 2)); masks and depths differ per view."""
+    K = torch.tensor([[1.0, 0.0, 2.0], [0.0, 1.0, 2.0], [0.0, 0.0, 1.0]]).expand(3, 3, 3)
+    viewmats = torch.eye(4).expand(3, 4, 4)
+    means = torch.tensor([
+        [-1.5, -1.5, 1.0],  # pixel (0, 0): ids 1, 1, 3 → 1
+        [0.5, 0.5, 1.0],  # pixel (2, 2): ids 2, 0, 0 → background wins
+        [5.0, 0.0, 1.0],  # outside every image → 0
+        [0.0, 0.0, -1.0],  # behind the camera → 0
+        [-0.5, -0.5, 2.0],  # pixel (1, 1) at depth 2: ids 1, 2, 2, hidden (depth 1) in views 1 and 2 → 1
+        [0.5, -1.5, 1.0],  # pixel (2, 0): ids 1, 2, 0, a three-way tie → 0
+        [1.5, 1.5, 1.0],  # pixel (3, 3): ids 3, 2, 0, hidden in view 2 → tie of 3 and 2 → 2; without depth → 0
+    ])
+    masks = torch.zeros(3, 4, 4, dtype=torch.long)  # [V, H, W], indexed [view, row, col]
+    for view, ids in enumerate([(1, 2, 1, 1, 3), (1, 0, 2, 2, 2), (3, 0, 2, 0, 0)]):
+        for (col, row), k in zip([(0, 0), (2, 2), (1, 1), (2, 0), (3, 3)], ids):
+            masks[view, row, col] = k
+    depths = torch.zeros(3, 4, 4)
+    depths[1, 1, 1] = depths[2, 1, 1] = 1.0
+    depths[2, 3, 3] = 0.5
+    return means, viewmats, K, masks, depths
+
+
+def test_labels_from_masks_hand_made_case():
+    means, viewmats, Ks, masks, depths = _hand_made_case()
+    labels = labels_from_masks(means, viewmats, Ks, 4, 4, masks, depths, depth_tolerance=0.02)
+    assert labels.dtype == torch.int64 and labels.shape == (7,)
+    assert labels.tolist() == [1, 0, 0, 0, 1, 0, 2]
+    # without the visibility test the hidden views vote too
+    no_depth = labels_from_masks(means, viewmats, Ks, 4, 4, masks, None)
+    assert no_depth.tolist() == [1, 0, 0, 0, 2, 0, 0]
+    # a wide enough tolerance lets the point at depth 2 through the surface at depth 1: ids 1, 2, 2 → 2
+    assert labels_from_masks(means, viewmats, Ks, 4, 4, masks, depths, depth_tolerance=1.5)[4] == 2
+
+
+def test_labels_from_masks_uses_the_world_to_camera_matrix():
+    # a camera off the origin looking at a target: the target lands in the centre pixel of a 5×5 image
+    target = np.array([0.3, -0.2, 0.5])
+    viewmat = torch.from_numpy(look_at(np.array([2.0, 1.0, 1.5]), target)).float()[None]
+    K = torch.tensor([[[4.0, 0.0, 2.5], [0.0, 4.0, 2.5], [0.0, 0.0, 1.0]]])
+    masks = torch.zeros(1, 5, 5, dtype=torch.long)
+    masks[0, 2, 2] = 7
+    means = torch.tensor([target.tolist(), (target + [0.0, 0.0, 1.0]).tolist()]).float()
+    assert labels_from_masks(means, viewmat, K, 5, 5, masks).tolist() == [7, 0]
+
+
+def test_labels_from_masks_empty_and_bad_input():
+    _, viewmats, Ks, masks, depths = _hand_made_case()
+    empty = labels_from_masks(torch.zeros(0, 3), viewmats, Ks, 4, 4, masks, depths)
+    assert empty.shape == (0,) and empty.dtype == torch.int64
+    no_views = labels_from_masks(torch.ones(5, 3), torch.zeros(0, 4, 4), torch.zeros(0, 3, 3), 4, 4,
+                                 torch.zeros(0, 4, 4, dtype=torch.long))
+    assert no_views.tolist() == [0] * 5
+    with pytest.raises(ValueError, match="masks"):
+        labels_from_masks(torch.ones(5, 3), viewmats, Ks, 4, 4, masks[:, :3])
+    with pytest.raises(ValueError, match="integer"):
+        labels_from_masks(torch.ones(5, 3), viewmats, Ks, 4, 4, masks.float())
+
+
+# ----------------------------------------------------------------------------- pose errors
+
+
+def _rot(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    a = math.radians(deg)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+
+
+def _similarity(R, t, s):
+    P = np.eye(4)
+    P[:3, :3] = s * R
+    P[:3, 3] = t
+    return P
+
+
+def test_pose_errors_on_scaled_poses():
+    s, diag = 0.3, 2.0
+    P_src = _similarity(_rot([0, 0, 1], 40), [0.5, -0.2, 0.1], s)
+    P_tpl = _similarity(_rot([1, 2, 3], 75), [-0.4, 0.3, 0.0], s)
+    rigid, scale = rigid_part(P_src)
+    assert scale == pytest.approx(s) and np.allclose(rigid[:3, :3] @ rigid[:3, :3].T, np.eye(3))
+    T_gt = P_tpl @ np.linalg.inv(P_src)
+    rot, trans = pose_errors(T_gt, P_src, P_tpl, "none", diag)
+    assert rot < 1e-5 and trans < 1e-9
+    # an estimate off by 3° about the source's own origin: 3° and no translation error
+    D = np.eye(4)
+    D[:3, :3] = _rot([1, 0, 0], 3.0)
+    D[:3, 3] = P_src[:3, 3] - D[:3, :3] @ P_src[:3, 3]
+    rot, trans = pose_errors(T_gt @ np.linalg.inv(D), P_src, P_tpl, "none", diag)
+    assert rot == pytest.approx(3.0, abs=1e-6) and trans < 1e-9
+    # off by a translation δ: |δ| / (diag · s) of the diagonal
+    D = np.eye(4)
+    D[:3, 3] = [0.006, 0.0, 0.0]
+    rot, trans = pose_errors(T_gt @ np.linalg.inv(D), P_src, P_tpl, "none", diag)
+    assert rot < 1e-5 and trans == pytest.approx(0.006 / (diag * s))
+    # a quarter turn about the object's z axis is no error for a 4-fold symmetric object, 90° otherwise
+    D = np.eye(4)
+    D[:3, :3] = P_src[:3, :3] / s @ _rot([0, 0, 1], 90) @ (P_src[:3, :3] / s).T
+    D[:3, 3] = P_src[:3, 3] - D[:3, :3] @ P_src[:3, 3]
+    assert pose_errors(T_gt @ np.linalg.inv(D), P_src, P_tpl, "rot_z:4", diag)[0] < 1e-5
+    assert pose_errors(T_gt @ np.linalg.inv(D), P_src, P_tpl, "none", diag)[0] == pytest.approx(90.0)
+
+
+def test_scale_intrinsics_and_segment_matching():
+    K = torch.tensor([[[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]]])
+    assert torch.allclose(scale_intrinsics(K, (160, 120), (128, 96))[0],
+                          torch.tensor([[80.0, 0.0, 64.0], [0.0, 80.0, 48.0], [0.0, 0.0, 1.0]]))
+    seg = torch.tensor([1, 1, 1, 1, 2, 2, 2, 0, 3, 3])
+    gt = torch.tensor([4, 4, 0, 5, 0, 0, 6, 4, 0, 0])
+    matched = match_segments_to_ground_truth(seg, gt)
+    assert matched[1] == (4, 0.5) and matched[2] == (6, pytest.approx(1 / 3)) and matched[3] == (None, 0.0)
+    assert set(matched) == {1, 2, 3}
+
+
+# ----------------------------------------------------------------------------- the bench on `tiny`
+
+
+@pytest.fixture(scope="module")
+def tiny_bench(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench_register")
+    cfg = BenchRegisterConfig(
+        preset="tiny", res="64x48", n_train=16, n_test=4, base_iterations=300, rows=("ours", "no_icp", "fpfh"),
+        data_root=root / "data", out_dir=root / "runs", json=root / "register_tiny.json", threads=1,
+    )
+    return cfg, load_bench_scene(cfg)
+
+
+def test_ground_truth_labels_on_trained_tiny(tiny_bench):
+    from splatreplace_ns.sim import class_mesh
+
+    _, scene = tiny_bench
+    means = scene.pipeline.model.means.detach().double().numpy()
+    labels = scene.gt_labels.numpy()
+    assert labels.shape == (means.shape[0],) and sorted(scene.ground_truth) == [1, 2, 3]
+    for iid, gt in scene.ground_truth.items():
+        mesh = class_mesh(gt.cls)
+        to_object = np.linalg.inv(gt.pose)  # normalised world → object (undoes the dataparser's scale too)
+        local = means @ to_object[:3, :3].T + to_object[:3, 3]
+        inside = np.all((local >= mesh.get_min_bound()) & (local <= mesh.get_max_bound()), axis=1)
+        assert inside.sum() >= 20, f"crate {iid}: only {inside.sum()} Gaussians inside its box"
+        share = float((labels[inside] == iid).mean())
+        print(f"crate {iid}: {inside.sum()} Gaussians inside its box, {100 * share:.1f} % labelled {iid}")
+        assert share >= 0.9, f"crate {iid}: {100 * share:.1f} % of the Gaussians inside its box carry its label"
+        # and the label does not leak far: most Gaussians labelled k are within a box twice as large
+        centre = 0.5 * (mesh.get_min_bound() + mesh.get_max_bound())
+        half = mesh.get_max_bound() - centre
+        near = np.all(np.abs(local[labels == iid] - centre) <= 2 * half, axis=1)
+        assert near.mean() >= 0.9, f"crate {iid}: {100 * near.mean():.1f} % of its labels near it"
+
+
+def test_bench_json_interface(tiny_bench):
+    cfg, _ = tiny_bench
+    result = cfg.main()  # reuses the trained run of the fixture
+    assert result["parameters"]["model_reused"]
+    data = json.loads(cfg.json.read_text())
+    assert data["preset"] == "tiny"
+    assert [r["method"] for r in data["rows"]] == ["ours", "no_icp", "fpfh"]
+    for row in data["rows"]:
+        assert INTERFACE_KEYS <= set(row), row.keys()
+        assert row["n_sources"] == 2 and 0 <= row["failures"] <= 2  # three crates: one template, two sources
+        assert math.isfinite(row["time_s_per_instance"]) and row["time_s_per_instance"] > 0
+        if row["failures"] < row["n_sources"]:
+            for key in ("rot_err_deg_mean", "rot_err_deg_max", "trans_err_rel_mean"):
+                assert math.isfinite(row[key]) and row[key] >= 0, (row["method"], key, row[key])
+            assert 0 <= row["rot_err_deg_mean"] <= row["rot_err_deg_max"] <= 180
+        templates = {e["template"] for e in row["per_instance"]}
+        assert len(templates) == 1 and templates.isdisjoint({e["id"] for e in row["per_instance"]})
+    for key in ("machine", "parameters", "time_s"):
+        assert key in data
+    assert data["time_s"]["total"] > 0 and data["machine"]["versions"]["torch"]
