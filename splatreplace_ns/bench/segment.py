@@ -28,10 +28,7 @@ import torch
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-from splatreplace_ns.eval.segmentation import segmentation_scores
-from splatreplace_ns.segment.clicks import load_clicks
-from splatreplace_ns.segment.instances import SelectionError
-from splatreplace_ns.segment.select import masks_from_rendered_features
+from splatreplace_ns.eval.segmentation import score_views_from_clicks
 
 
 @dataclass
@@ -78,39 +75,6 @@ def _scene(cfg: BenchSegmentConfig) -> Path:
     if not (data / "transforms.json").exists():
         make_scene(cfg.preset, data, res=cfg.res, seed=0, n_train=cfg.n_train, n_test=cfg.n_test)
     return data
-
-
-@torch.no_grad()
-def score_test_views(pipeline, clicks_path: Path) -> Dict:
-    """Selects the instances from the clicks (no carving) and scores test-view masks."""
-    pipeline.model.eval()
-    selection = pipeline.begin_selection()
-    clicks = load_clicks(clicks_path)
-    raw = json.loads(clicks_path.read_text())
-    pred_to_gt, failures = {}, []
-    for click in clicks:
-        gt_id = int(raw[click.index].get("id", click.index + 1))
-        try:
-            pipeline.add_click(click)
-        except SelectionError as err:  # scored as a missed instance (IoU 0), not a crash
-            failures.append(str(err))
-            pred_to_gt[-(click.index + 1)] = gt_id
-            continue
-        pred_to_gt[selection.instances[-1].id] = gt_id
-    queries = selection.queries.to(pipeline.device)
-    cfg = pipeline.config.segmentation
-    dataset = pipeline.datamanager.eval_dataset
-    preds, gts = [], []
-    for idx in range(len(dataset)):
-        camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
-        features, alpha, _ = pipeline.model.render_features(camera)
-        preds.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha).cpu())
-        gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
-    scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
-    scores["labels"] = selection.labels().cpu()
-    scores["failures"] = failures
-    pipeline.model.train()
-    return scores
 
 
 def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01) -> int:
@@ -168,7 +132,7 @@ def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, car
             marks["base_done"] = time.perf_counter()
         if step in probes:
             t0 = time.perf_counter()
-            scores = score_test_views(pipeline, data / "clicks.json")
+            scores = score_views_from_clicks(pipeline, data / "clicks.json")
             record[probes[step]] = {
                 "miou": scores["miou"],
                 "macc": scores["macc"],

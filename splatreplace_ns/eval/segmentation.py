@@ -1,7 +1,9 @@
-"""Segmentation scores of rendered instance masks against ground truth."""
+"""Segmentation scores of rendered instance masks against ground truth, and the click replay that makes them."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Dict, Mapping
 
 import torch
@@ -41,3 +43,86 @@ def segmentation_scores(pred: torch.Tensor, gt: torch.Tensor, pred_to_gt: Mappin
         "iou": iou,
         "acc": acc,
     }
+
+
+def click_gt_ids(pipeline, clicks_path: Path) -> Dict[int, int]:
+    """Ground-truth instance id of every click in ``clicks.json``, by click index.
+
+    The entry's ``"id"`` when given (the simulator writes it), else the ground-truth mask value under the
+    clicked pixel of its training view (0 when the click is on ground-truth background).
+    """
+    from splatreplace_ns.segment.clicks import load_clicks
+
+    raw = json.loads(Path(clicks_path).read_text())
+    train = pipeline.datamanager.train_dataset
+    ids = {}
+    for click in load_clicks(clicks_path):
+        if "id" in raw[click.index]:
+            ids[click.index] = int(raw[click.index]["id"])
+            continue
+        mask = train.get_data(pipeline.train_index_of(click.file_path), image_type="uint8")["instance_mask"]
+        H, W = mask.shape[:2]
+        row, col = min(max(int(click.xy[1]), 0), H - 1), min(max(int(click.xy[0]), 0), W - 1)
+        ids[click.index] = int(mask[row, col, 0])
+    return ids
+
+
+@torch.no_grad()
+def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None) -> Dict:
+    """Selects the instances from the clicks (no carving) and scores the masks they give in a set of views.
+
+    The masks of a view are its rendered features thresholded against the click queries
+    (``segment.select.masks_from_rendered_features``, τ and min_alpha from the pipeline's segmentation
+    config), scored against the ground-truth masks with :func:`segmentation_scores`. A click that cannot
+    become an instance counts as a missed instance (IoU 0), not a crash. The pipeline's selection and the
+    model's train/eval mode are left as they were.
+
+    Args:
+        pipeline: a ``SplatReplacePipeline`` (its ``begin_selection``/``add_click`` replay the clicks).
+        clicks_path: ``clicks.json``.
+        dataset: views to score (default: the eval dataset); must carry ``instance_mask``.
+
+    Returns:
+        :func:`segmentation_scores` plus ``labels`` ([N] per-Gaussian labels of the replayed selection),
+        ``failures`` (messages of the rejected clicks) and ``pred_to_gt``.
+    """
+    from splatreplace_ns.segment.clicks import load_clicks
+    from splatreplace_ns.segment.instances import SelectionError
+    from splatreplace_ns.segment.select import masks_from_rendered_features
+
+    model = pipeline.model
+    was_training, previous_selection = model.training, pipeline.selection
+    model.eval()
+    try:
+        selection = pipeline.begin_selection()
+        gt_ids = click_gt_ids(pipeline, clicks_path)
+        pred_to_gt, failures = {}, []
+        for click in load_clicks(clicks_path):
+            gt_id = gt_ids[click.index]
+            if gt_id == 0:  # nothing to score it against
+                failures.append(f"click {click.index} ({click.file_path} at {click.xy}): on ground-truth background")
+                continue
+            try:
+                pipeline.add_click(click)
+            except SelectionError as err:
+                failures.append(str(err))
+                pred_to_gt[-(click.index + 1)] = gt_id
+                continue
+            pred_to_gt[selection.instances[-1].id] = gt_id
+        queries = selection.queries.to(pipeline.device)
+        cfg = pipeline.config.segmentation
+        dataset = pipeline.datamanager.eval_dataset if dataset is None else dataset
+        preds, gts = [], []
+        for idx in range(len(dataset)):
+            camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
+            features, alpha, _ = model.render_features(camera)
+            preds.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha).cpu())
+            gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
+        scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
+        scores["labels"] = selection.labels().cpu()
+        scores["failures"] = failures
+        scores["pred_to_gt"] = pred_to_gt
+        return scores
+    finally:
+        pipeline.selection = previous_selection
+        model.train(was_training)
