@@ -8,18 +8,24 @@ from typing import Union
 import tyro
 from typing_extensions import Annotated
 
+from splatreplace_ns.bench.masks import BenchMasksConfig
 from splatreplace_ns.bench.register import BenchRegisterConfig
 from splatreplace_ns.bench.render import BenchRenderConfig
 from splatreplace_ns.bench.segment import BenchSegmentConfig
+from splatreplace_ns.bench.template import BenchTemplateConfig
 from splatreplace_ns.bench.sim import BenchSimConfig
 from splatreplace_ns.demo import DemoCommand
+from splatreplace_ns.export import ExportCommand
+from splatreplace_ns.masks.command import MasksCommand
 from splatreplace_ns.sim import SimCommand
 
 BenchCommands = Union[
     Annotated[BenchRenderConfig, tyro.conf.subcommand("render")],
     Annotated[BenchSimConfig, tyro.conf.subcommand("sim")],
     Annotated[BenchSegmentConfig, tyro.conf.subcommand("segment")],
+    Annotated[BenchTemplateConfig, tyro.conf.subcommand("template")],
     Annotated[BenchRegisterConfig, tyro.conf.subcommand("register")],
+    Annotated[BenchMasksConfig, tyro.conf.subcommand("masks")],
 ]
 
 
@@ -36,6 +42,8 @@ class BenchCommand:
 Commands = Union[
     Annotated[SimCommand, tyro.conf.subcommand("sim", description="Write a synthetic repetitive scene with ground truth.")],
     Annotated[DemoCommand, tyro.conf.subcommand("demo", description="Run the method on the embedded default scene.")],
+    Annotated[ExportCommand, tyro.conf.subcommand("export", description="Export the replaced scene (3DGS PLY + instanced file).")],
+    Annotated[MasksCommand, tyro.conf.subcommand("masks", description="Instance masks for a capture from one click per instance.")],
     Annotated[BenchCommand, tyro.conf.subcommand("bench")],
 ]
 

@@ -1,0 +1,303 @@
+"""``splatreplace bench masks``: instance masks from one click per instance, against the ground truth.
+
+On a sim preset with the masks withheld (images, cameras, points and clicks only — what a capture has):
+
+* per backend: mIoU and boundary F-score of the written masks over every frame, and the wall time of
+  the masks after the base stage (the base stage's time is reported apart);
+* downstream: ``ns-train splat-replace`` trained in process on the capture with our masks and on the
+  same capture with the ground-truth masks; test-view segmentation mIoU (against the ground truth) and
+  ``psnr_masked`` from the eval metrics when the method reports it (the shared-template stage), else null.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import cv2
+import numpy as np
+import torch
+
+from splatreplace_ns.eval.segmentation import segmentation_scores
+from splatreplace_ns.masks.capture import strip_ground_truth
+
+PENDING = "pending: shared-template stage"
+
+
+@dataclass
+class BenchMasksConfig:
+    """Mask mIoU / boundary F per backend, wall time, and the downstream effect of our masks."""
+
+    preset: str = "office"
+    """Synthetic preset (office, temple, chess, ...)."""
+    json: Optional[Path] = None
+    """Where to write the results as JSON."""
+    res: str = "160x120"
+    """Scene resolution WxH."""
+    n_train: int = 60
+    """Training views."""
+    n_test: int = 12
+    """Test views."""
+    base_iterations: int = 2000
+    """Base 3DGS* iterations of the masks run."""
+    load_config: Optional[Path] = None
+    """Reuse this base run (config.yml of an earlier masks run on the same capture) instead of training."""
+    backends: Tuple[str, ...] = ("geometric",)
+    """Backends to score; onnx-sam needs --sam-encoder/--sam-decoder."""
+    sam_encoder: Optional[Path] = None
+    sam_decoder: Optional[Path] = None
+    border: str = "grabcut"
+    """Border cleanup of the geometric backend (grabcut, guided, none)."""
+    downstream: bool = True
+    """Also train splat-replace on our masks and on the ground-truth masks."""
+    downstream_base_iterations: int = 1000
+    downstream_contrastive_iterations: int = 500
+    boundary_tolerance: int = 2
+    """Boundary F-score: a boundary pixel matches within this many pixels."""
+    data_root: Path = Path("benchmarks/data")
+    out_dir: Path = Path("benchmarks/runs")
+
+    def main(self) -> Dict:
+        result = run_masks_bench(self)
+        print_table(result)
+        if self.json is not None:
+            self.json.parent.mkdir(parents=True, exist_ok=True)
+            self.json.write_text(json.dumps(result, indent=2) + "\n")
+            print(f"wrote {self.json}")
+        return result
+
+
+# ----------------------------------------------------------------------------- scores
+
+
+def boundaries(mask: np.ndarray) -> np.ndarray:
+    """[H, W] bool → its inner boundary pixels (in the mask, with a 4-neighbour outside it)."""
+    m = mask.astype(np.uint8)
+    return mask & ~cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def boundary_f_score(pred: np.ndarray, gt: np.ndarray, pred_to_gt: Dict[int, int], tolerance: int = 2) -> Dict:
+    """Boundary F-score per instance (Perazzi et al.'s F measure), accumulated over views.
+
+    Args:
+        pred: [V, H, W] predicted labels; gt: [V, H, W] ground-truth labels.
+        pred_to_gt: predicted id → ground-truth id.
+        tolerance: pixels within which a boundary pixel counts as matched.
+
+    Returns:
+        {"boundary_f": mean over instances, "per_instance": {gt_id: F}}.
+    """
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * tolerance + 1, 2 * tolerance + 1))
+    scores = {}
+    for p, g in pred_to_gt.items():
+        matched_p = total_p = matched_g = total_g = 0
+        for v in range(pred.shape[0]):
+            bp, bg = boundaries(pred[v] == p), boundaries(gt[v] == g)
+            near_g = cv2.dilate(bg.astype(np.uint8), kernel).astype(bool)
+            near_p = cv2.dilate(bp.astype(np.uint8), kernel).astype(bool)
+            matched_p += int((bp & near_g).sum())
+            total_p += int(bp.sum())
+            matched_g += int((bg & near_p).sum())
+            total_g += int(bg.sum())
+        precision = matched_p / total_p if total_p else float(total_g == 0)
+        recall = matched_g / total_g if total_g else float(total_p == 0)
+        scores[g] = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"boundary_f": float(np.mean(list(scores.values()))) if scores else 0.0, "per_instance": scores}
+
+
+def read_masks(data: Path, frames: List[Dict]) -> np.ndarray:
+    """[V, H, W] masks named by ``frames[].instance_mask_path``."""
+    return np.stack([cv2.imread(str(data / f["instance_mask_path"]), cv2.IMREAD_UNCHANGED) for f in frames])
+
+
+def score_masks(scene: Path, capture: Path, tolerance: int) -> Dict:
+    """mIoU and boundary F of a capture's written masks against the scene's ground truth (every frame)."""
+    gt_meta = json.loads((scene / "transforms.json").read_text())
+    ours_meta = json.loads((capture / "transforms.json").read_text())
+    clicks = json.loads((scene / "clicks.json").read_text())
+    pred_to_gt = {k + 1: int(c["id"]) for k, c in enumerate(clicks)}
+    gt = read_masks(scene, gt_meta["frames"])
+    ours = read_masks(capture, ours_meta["frames"])
+    seg = segmentation_scores(torch.from_numpy(ours.astype(np.int64)), torch.from_numpy(gt.astype(np.int64)), pred_to_gt)
+    bf = boundary_f_score(ours, gt, pred_to_gt, tolerance)
+    return {"miou": seg["miou"], "iou": seg["iou"], "boundary_f": bf["boundary_f"], "boundary_f_per_instance": bf["per_instance"]}
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def _scene(cfg: BenchMasksConfig) -> Path:
+    from splatreplace_ns.sim import make_scene
+
+    data = cfg.data_root / f"{cfg.preset}_{cfg.res}_{cfg.n_train}_{cfg.n_test}"
+    if not (data / "transforms.json").exists():
+        make_scene(cfg.preset, data, res=cfg.res, seed=0, n_train=cfg.n_train, n_test=cfg.n_test)
+    return data
+
+
+def with_ground_truth_masks(scene: Path, capture: Path, out: Path) -> Path:
+    """A copy of the capture whose masks and instances are the scene's ground truth (the reference run)."""
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(capture, out, ignore=shutil.ignore_patterns("masks", "transforms.json*"))
+    shutil.copytree(scene / "masks", out / "masks")
+    gt_meta = json.loads((scene / "transforms.json").read_text())
+    meta = json.loads((capture / "transforms.json.before-masks").read_text())
+    for frame, gt_frame in zip(meta["frames"], gt_meta["frames"]):
+        frame["instance_mask_path"] = gt_frame["instance_mask_path"]
+    clicks = json.loads((scene / "clicks.json").read_text())
+    meta["instances"] = [{"id": int(i["id"]), "class": i["class"]} for i in gt_meta["instances"]]
+    (out / "transforms.json").write_text(json.dumps(meta, indent=2) + "\n")
+    # the reference run's clicks carry the ground-truth ids' order as they are
+    (out / "clicks.json").write_text(json.dumps(clicks, indent=2) + "\n")
+    return out
+
+
+@torch.no_grad()
+def test_view_miou(pipeline, scene: Path, clicks_path: Path) -> Dict:
+    """Segmentation mIoU of the trained method's test-view masks against the scene's ground truth."""
+    from splatreplace_ns.segment.clicks import load_clicks
+    from splatreplace_ns.segment.instances import SelectionError
+    from splatreplace_ns.segment.select import masks_from_rendered_features
+
+    pipeline.model.eval()
+    selection = pipeline.begin_selection()
+    scene_clicks = json.loads((scene / "clicks.json").read_text())
+    pred_to_gt, failures = {}, []
+    for click in load_clicks(clicks_path):
+        gt_id = int(scene_clicks[click.index]["id"])
+        try:
+            pipeline.add_click(click)
+            pred_to_gt[selection.instances[-1].id] = gt_id
+        except SelectionError as err:
+            failures.append(str(err))
+            pred_to_gt[-(click.index + 1)] = gt_id
+    queries = selection.queries.to(pipeline.device)
+    seg_cfg = pipeline.config.segmentation
+    dataset = pipeline.datamanager.eval_dataset
+    gt_by_name = {
+        Path(f["file_path"]).name: scene / f["instance_mask_path"]
+        for f in json.loads((scene / "transforms.json").read_text())["frames"]
+    }
+    preds, gts = [], []
+    for idx in range(len(dataset)):
+        camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
+        features, alpha, _ = pipeline.model.render_features(camera)
+        preds.append(masks_from_rendered_features(features, alpha, queries, seg_cfg.tau, seg_cfg.min_alpha).cpu())
+        gt = cv2.imread(str(gt_by_name[Path(dataset.image_filenames[idx]).name]), cv2.IMREAD_UNCHANGED)
+        gts.append(torch.from_numpy(gt.astype(np.int64)))
+    scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
+    return {"miou": scores["miou"], "failures": failures}
+
+
+def downstream_run(cfg: BenchMasksConfig, data: Path, scene: Path, name: str) -> Dict:
+    """Trains splat-replace on one dataset; returns psnr (all / masked when reported) and test-view mIoU."""
+    from splatreplace_ns.method.train import evaluate_test_views, make_trainer_config, run_training
+
+    config = make_trainer_config(
+        data, cfg.out_dir / f"masks_{cfg.preset}", cfg.downstream_base_iterations,
+        cfg.downstream_contrastive_iterations, experiment_name=name,
+    )
+    config.pipeline.model.num_downscales = 0
+    start = time.perf_counter()
+    trainer = run_training(config)
+    train_s = time.perf_counter() - start
+    metrics = evaluate_test_views(trainer)
+    seg = test_view_miou(trainer.pipeline, scene, data / "clicks.json")
+    return {
+        "psnr": float(metrics["psnr"]),
+        "psnr_masked": float(metrics["psnr_masked"]) if "psnr_masked" in metrics else None,
+        "segmentation_miou": seg["miou"],
+        "click_failures": seg["failures"],
+        "time_s": train_s,
+    }
+
+
+def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
+    from splatreplace_ns.masks.command import MasksCommand, make_masks
+    from splatreplace_ns.masks.render import BorderConfig
+
+    torch.set_num_threads(1)  # measured faster than 2 on the shared two-core machines
+    scene = _scene(cfg)
+    root = cfg.data_root / f"masks_{cfg.preset}"
+    rows, base_config, base_s = [], cfg.load_config, None
+    first_capture = None
+    for backend in cfg.backends:
+        capture = root / backend
+        strip_ground_truth(scene, capture)
+        command = MasksCommand(
+            capture, backend=backend, load_config=base_config, base_iterations=cfg.base_iterations,
+            output_dir=cfg.out_dir / f"masks_{cfg.preset}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
+            border=BorderConfig(method=cfg.border),
+        )
+        report = make_masks(command)
+        if base_config is None:
+            base_config, base_s = Path(report["config"]), report["time_s"]["base"]
+        scores = score_masks(scene, capture, cfg.boundary_tolerance)
+        rows.append({"backend": backend, "miou": scores["miou"], "boundary_f": scores["boundary_f"],
+                     "time_s": report["time_s"]["masks"], "iou_per_instance": scores["iou"],
+                     "boundary_f_per_instance": scores["boundary_f_per_instance"]})
+        first_capture = first_capture or capture
+
+    downstream: Dict = {"psnr_masked_gt_masks": None, "psnr_masked_our_masks": None}
+    if cfg.downstream and first_capture is not None:
+        reference = with_ground_truth_masks(scene, first_capture, root / "gt_masks")
+        ours = downstream_run(cfg, first_capture, scene, "downstream_our_masks")
+        gt = downstream_run(cfg, reference, scene, "downstream_gt_masks")
+        downstream = {
+            "psnr_masked_gt_masks": gt["psnr_masked"],
+            "psnr_masked_our_masks": ours["psnr_masked"],
+            "segmentation_miou_gt_masks": gt["segmentation_miou"],
+            "segmentation_miou_our_masks": ours["segmentation_miou"],
+            "psnr_gt_masks": gt["psnr"],
+            "psnr_our_masks": ours["psnr"],
+            "click_failures": {"gt_masks": gt["click_failures"], "our_masks": ours["click_failures"]},
+            "time_s": {"gt_masks": gt["time_s"], "our_masks": ours["time_s"]},
+        }
+        if gt["psnr_masked"] is None or ours["psnr_masked"] is None:
+            downstream["note"] = PENDING
+    import nerfstudio
+
+    return {
+        "benchmark": "masks",
+        "preset": cfg.preset,
+        "rows": rows,
+        "downstream": downstream,
+        "base": {"config": str(base_config), "time_s": base_s, "reused": cfg.load_config is not None},
+        "parameters": {
+            "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+            "border": cfg.border, "boundary_tolerance": cfg.boundary_tolerance,
+            "downstream_base_iterations": cfg.downstream_base_iterations,
+            "downstream_contrastive_iterations": cfg.downstream_contrastive_iterations,
+        },
+        "machine": {
+            "platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
+            "nerfstudio": getattr(nerfstudio, "__version__", "1.1.5"),
+        },
+    }
+
+
+def print_table(result: Dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"instance masks on '{result['preset']}' (every frame, masks withheld)")
+    for col in ("backend", "mIoU", "boundary F", "time (s)"):
+        table.add_column(col)
+    for row in result["rows"]:
+        table.add_row(row["backend"], f"{row['miou']:.4f}", f"{row['boundary_f']:.4f}", f"{row['time_s']:.1f}")
+    Console().print(table)
+    d = result["downstream"]
+    fmt = lambda v: "null" if v is None else f"{v:.3f}"  # noqa: E731
+    Console().print(
+        f"downstream: psnr_masked gt {fmt(d.get('psnr_masked_gt_masks'))} / ours {fmt(d.get('psnr_masked_our_masks'))}"
+        + (f" ({d['note']})" if "note" in d else "")
+        + (f"; segmentation mIoU gt {fmt(d['segmentation_miou_gt_masks'])} / ours {fmt(d['segmentation_miou_our_masks'])}"
+           if "segmentation_miou_gt_masks" in d else "")
+    )

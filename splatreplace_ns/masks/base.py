@@ -1,0 +1,134 @@
+"""The base 3DGS* model the masks are made from: trained here, or reused from a saved run.
+
+Also gives the cameras of *every* frame of ``transforms.json`` (train, test and any other) in the
+model's normalised world frame, because masks are written for every frame.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import torch
+
+from nerfstudio.cameras.cameras import Cameras, CameraType
+
+from splatreplace_ns.datamanager.dataparser import DatasetFormatError
+
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+@dataclass
+class FrameCameras:
+    """Every frame of a ``transforms.json``, in file order, in the model's normalised frame."""
+
+    file_paths: List[str]
+    """``frames[].file_path`` as written in the file."""
+    cameras: Cameras
+    """[F] pinhole cameras (OpenGL camera→world, normalised frame)."""
+    distortion: np.ndarray
+    """[F, 6] OpenCV distortion (k1, k2, k3, k4, p1, p2); zeros for pinhole frames."""
+
+    def index_of(self, file_path: str, source: str) -> int:
+        """Frame index of a file path (compared by file name, as the dataparser pairs masks)."""
+        names = [Path(p).name for p in self.file_paths]
+        name = Path(file_path).name
+        if name not in names:
+            raise ValueError(f"{source}: '{file_path}' is not a frame of transforms.json")
+        return names.index(name)
+
+
+def frame_cameras(transforms_path: Path, dataparser_transform: torch.Tensor, dataparser_scale: float) -> FrameCameras:
+    """Cameras of all frames, moved into the dataparser's normalised frame.
+
+    Args:
+        transforms_path: the dataset's transforms.json.
+        dataparser_transform: [3, 4] the parser's world transform (what nerfstudio stored in the run).
+        dataparser_scale: its scale, applied to camera centres after the transform.
+    """
+    meta = json.loads(Path(transforms_path).read_text())
+    frames = meta.get("frames") or []
+    if not frames:
+        raise DatasetFormatError(f"{transforms_path}: no frames")
+    c2ws, fx, fy, cx, cy, ws, hs, dist = [], [], [], [], [], [], [], []
+    for i, frame in enumerate(frames):
+        def get(key: str, default=None):
+            value = frame.get(key, meta.get(key, default))
+            if value is None:
+                raise DatasetFormatError(f"{transforms_path}: frame {i} ({frame.get('file_path')}) has no '{key}'")
+            return float(value)
+
+        c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
+        fx.append(get("fl_x"))
+        fy.append(get("fl_y"))
+        cx.append(get("cx"))
+        cy.append(get("cy"))
+        ws.append(int(get("w")))
+        hs.append(int(get("h")))
+        dist.append([get(k, 0.0) for k in DISTORTION_KEYS])
+    model = str(meta.get("camera_model", "OPENCV"))
+    if model not in ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV"):
+        raise DatasetFormatError(
+            f"{transforms_path}: camera_model {model!r} is not supported for mask rendering; "
+            "use PINHOLE or OPENCV (undistort fisheye captures first)"
+        )
+    transform = np.eye(4)
+    transform[:3] = dataparser_transform.double().numpy()
+    poses = transform @ np.stack(c2ws)
+    poses[:, :3, 3] *= float(dataparser_scale)
+    cameras = Cameras(
+        camera_to_worlds=torch.from_numpy(poses[:, :3]).float(),
+        fx=torch.tensor(fx)[:, None],
+        fy=torch.tensor(fy)[:, None],
+        cx=torch.tensor(cx)[:, None],
+        cy=torch.tensor(cy)[:, None],
+        width=torch.tensor(ws)[:, None],
+        height=torch.tensor(hs)[:, None],
+        camera_type=CameraType.PERSPECTIVE,
+    )
+    return FrameCameras([str(f["file_path"]) for f in frames], cameras, np.asarray(dist, dtype=np.float64))
+
+
+@dataclass
+class BaseModel:
+    """A trained base model and what is needed to place cameras in its frame."""
+
+    model: torch.nn.Module
+    """SplatReplaceModel (means, scales, quats, opacities, features_dc/rest)."""
+    dataparser_transform: torch.Tensor
+    """[3, 4]."""
+    dataparser_scale: float
+    config_path: Path
+    """config.yml of the run (reuse it with ``--load-config``)."""
+
+
+def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: Optional[str] = None) -> BaseModel:
+    """Trains the base 3DGS* stage only (no masks or clicks needed) with nerfstudio's Trainer."""
+    from splatreplace_ns.method.train import make_trainer_config, run_training
+
+    config = make_trainer_config(
+        data, output_dir, iterations, 0, experiment_name=experiment_name or f"{Path(data).name}-masks-base", progress=True
+    )
+    trainer = run_training(config)
+    outputs = trainer.pipeline.datamanager.train_dataparser_outputs
+    trainer.pipeline.model.eval()
+    return BaseModel(
+        trainer.pipeline.model, outputs.dataparser_transform.clone(), float(outputs.dataparser_scale),
+        config.get_base_dir() / "config.yml",
+    )
+
+
+def load_base(config_path: Path) -> BaseModel:
+    """Loads a saved run (``config.yml`` of ``ns-train splat-replace`` or of an earlier ``masks``)."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    config_path = Path(config_path)
+    if not config_path.exists():
+        raise FileNotFoundError(f"{config_path}: --load-config file not found")
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    outputs = pipeline.datamanager.train_dataparser_outputs
+    pipeline.model.eval()
+    return BaseModel(pipeline.model, outputs.dataparser_transform.clone(), float(outputs.dataparser_scale), config_path)

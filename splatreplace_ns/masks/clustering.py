@@ -1,0 +1,334 @@
+"""Geometric instances: remove the supporting planes, cluster the Gaussian centres, pick the clicked clusters.
+
+All lengths are in units of the scene's typical neighbourhood size: the median distance from a solid
+Gaussian to its ``cluster_min_points``-th nearest neighbour. That is the radius DBSCAN needs for most
+points to be core points, so the defaults work whatever the scale of the normalised world and however
+densely the base stage filled it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from splatreplace_ns.masks.lifting import ClickError, LiftedClick
+
+PLANE = -2
+"""Label of Gaussians on a removed supporting plane."""
+NOISE = -1
+"""Label of Gaussians DBSCAN left unclustered (or too faint to cluster)."""
+
+
+@dataclass
+class ClusteringConfig:
+    min_opacity: float = 0.3
+    """Fainter Gaussians are not clustered (they are floaters or fuzz); they follow their nearest solid neighbour."""
+    plane_distance: float = 0.6
+    """Plane inlier distance, in spacings."""
+    min_plane_fraction: float = 0.04
+    """Stop removing planes when the next plane holds less than this fraction of the solid Gaussians."""
+    max_planes: int = 8
+    """At most this many supporting planes are removed."""
+    min_plane_extent: float = 0.3
+    """A supporting plane's sheet spans at least this fraction of the scene's diagonal (floors and walls
+    do; the coplanar faces of a few objects do not)."""
+    plane_normal_agreement: float = 0.8
+    """A plane inlier must also face the plane's way (|cos| of its local normal with the plane's normal),
+    so that a plane slicing obliquely through furniture does not count the furniture as its support."""
+    cluster_eps: float = 1.5
+    """DBSCAN radius, in spacings."""
+    cluster_min_points: int = 8
+    """DBSCAN core-point neighbour count."""
+    click_neighbours: int = 12
+    """Solid Gaussians nearest to a lifted click that vote for its cluster."""
+    click_radius: float = 2.0
+    """The voting Gaussians must lie within this many spacings of the lifted click."""
+    follow_radius: float = 1.5
+    """Faint Gaussians within this many spacings of a solid one take its label."""
+    reclaim_radius: float = 0.5
+    """Plane inliers within this many spacings of a clustered Gaussian join its cluster (an object's
+    base and faces flush with a plane are plane inliers too; the floor beyond is not that close)."""
+    split_neighbours: int = 8
+    """kNN graph degree when a cluster holding several clicks is split between them."""
+    split_colour_weight: float = 10.0
+    """Edge length factor per unit of RGB difference in that graph."""
+    duplicate_radius: float = 3.0
+    """Two clicks in one cluster closer than this many spacings are one object clicked twice (an error)."""
+    seed: int = 0
+    """RANSAC seed of the plane fits (same input, same planes, same bytes)."""
+
+
+@dataclass
+class Clustering:
+    labels: np.ndarray
+    """[N] per-Gaussian label: cluster id >= 0, NOISE or PLANE."""
+    spacing: float
+    """Median distance of a solid Gaussian to its k-th nearest neighbour (the length unit)."""
+    planes: List[np.ndarray] = field(default_factory=list)
+    """Removed planes as [4] (a, b, c, d) with a x + b y + c z + d = 0."""
+
+
+def neighbourhood_spacing(points: np.ndarray, k: int) -> float:
+    """Median distance from each of [P, 3] points to its k-th nearest neighbour."""
+    from scipy.spatial import cKDTree
+
+    if len(points) <= k:
+        return 1.0
+    dist, _ = cKDTree(points).query(points, k=k + 1)
+    return float(max(np.median(dist[:, k]), 1e-9))
+
+
+def _cloud(points: np.ndarray):
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
+    return cloud
+
+
+def local_normals(points: np.ndarray, spacing: float, neighbours: int = 16) -> np.ndarray:
+    """[P, 3] unit normals from the covariance of each point's neighbourhood (open3d)."""
+    import open3d as o3d
+
+    cloud = _cloud(points)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * spacing, max_nn=neighbours))
+    return np.asarray(cloud.normals)
+
+
+def robust_diagonal(points: np.ndarray) -> float:
+    """Diagonal of the 2nd–98th percentile bounding box of [P, 3] points."""
+    if len(points) == 0:
+        return 0.0
+    lo, hi = np.percentile(points, [2.0, 98.0], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def largest_component(points: np.ndarray, eps: float) -> np.ndarray:
+    """Indices of the largest DBSCAN component of [P, 3] points (linked within ``eps``)."""
+    labels = np.asarray(_cloud(points).cluster_dbscan(eps, 3, print_progress=False), dtype=np.int64)
+    if not (labels >= 0).any():
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(labels == np.bincount(labels[labels >= 0]).argmax())
+
+
+def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> Tuple[np.ndarray, List[np.ndarray]]:
+    """Iteratively finds the largest planes (RANSAC) and marks their inliers.
+
+    Only inliers whose local normal faces the plane's way count, and only their largest connected
+    sheet is removed, and only when it spans a good part of the scene: nine chair seats at one height
+    or a table top are not a floor. Rejected candidates are set aside so the search moves on.
+
+    Args:
+        points: [P, 3] solid Gaussian centres.
+        spacing: the length unit.
+
+    Returns:
+        on_plane [P] bool, the removed planes ([4] each).
+    """
+    import open3d as o3d
+
+    o3d.utility.random.seed(cfg.seed)
+    normals = local_normals(points, spacing)
+    scene_diagonal = robust_diagonal(points)
+    on_plane = np.zeros(len(points), dtype=bool)
+    set_aside = np.zeros(len(points), dtype=bool)
+    planes: List[np.ndarray] = []
+    threshold = cfg.plane_distance * spacing
+    for _ in range(cfg.max_planes * 3):  # set-aside planes do not count toward max_planes
+        if len(planes) >= cfg.max_planes:
+            break
+        remaining = np.flatnonzero(~on_plane & ~set_aside)
+        if len(remaining) < max(3, cfg.min_plane_fraction * len(points)):
+            break
+        plane, inliers = _cloud(points[remaining]).segment_plane(threshold, 3, 1000)
+        inliers = remaining[np.asarray(inliers, dtype=np.int64)]
+        plane = np.asarray(plane, dtype=np.float64)
+        unit = plane[:3] / max(np.linalg.norm(plane[:3]), 1e-12)
+        facing = np.abs(normals[inliers] @ unit) >= cfg.plane_normal_agreement
+        if int(facing.sum()) < cfg.min_plane_fraction * len(points):
+            if len(inliers) < cfg.min_plane_fraction * len(points):
+                break
+            set_aside[inliers] = True  # not a supporting plane; look past these points
+            continue
+        inliers = inliers[facing]
+        # a supporting plane is one connected sheet (the floor, a wall), not the seats of nine chairs
+        sheet = inliers[largest_component(points[inliers], cfg.cluster_eps * spacing)]
+        if len(sheet) < cfg.min_plane_fraction * len(points):
+            set_aside[inliers] = True
+            continue
+        set_aside[np.setdiff1d(inliers, sheet)] = True
+        inliers = sheet
+        if robust_diagonal(points[inliers]) < cfg.min_plane_extent * scene_diagonal:
+            set_aside[inliers] = True
+            continue
+        on_plane[inliers] = True
+        planes.append(plane)
+    return on_plane, planes
+
+
+def cluster_points(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> np.ndarray:
+    """DBSCAN of [P, 3] points; returns [P] labels (>= 0 cluster, -1 noise)."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    labels = _cloud(points).cluster_dbscan(cfg.cluster_eps * spacing, cfg.cluster_min_points, print_progress=False)
+    return np.asarray(labels, dtype=np.int64)
+
+
+def reclaim(points: np.ndarray, labels: np.ndarray, on_plane: np.ndarray, spacing: float, cfg: ClusteringConfig) -> np.ndarray:
+    """Gives unclustered points next to a cluster that cluster's label.
+
+    Plane inliers join within ``reclaim_radius`` spacings, DBSCAN's border noise within ``cluster_eps``.
+
+    Args:
+        points: [P, 3]; labels: [P] (cluster >= 0, NOISE, PLANE); on_plane: [P] bool.
+
+    Returns:
+        [P] new labels.
+    """
+    from scipy.spatial import cKDTree
+
+    clustered = np.flatnonzero(labels >= 0)
+    loose = np.flatnonzero(labels < 0)
+    if len(clustered) == 0 or len(loose) == 0:
+        return labels
+    dist, nearest = cKDTree(points[clustered]).query(points[loose], k=1)
+    radius = np.where(on_plane[loose], cfg.reclaim_radius, cfg.cluster_eps) * spacing
+    join = dist <= radius
+    out = labels.copy()
+    out[loose[join]] = labels[clustered[nearest[join]]]
+    return out
+
+
+def cluster_gaussians(means: np.ndarray, opacities: np.ndarray, cfg: ClusteringConfig) -> Clustering:
+    """Labels every Gaussian: cluster id, NOISE or PLANE.
+
+    Args:
+        means: [N, 3] centres.
+        opacities: [N] activated opacities in [0, 1].
+    """
+    from scipy.spatial import cKDTree
+
+    solid = opacities >= cfg.min_opacity
+    labels = np.full(len(means), NOISE, dtype=np.int64)
+    if int(solid.sum()) < cfg.cluster_min_points:
+        return Clustering(labels, 1.0)
+    points = means[solid]
+    spacing = neighbourhood_spacing(points, cfg.cluster_min_points)
+    on_plane, planes = remove_planes(points, spacing, cfg)
+    solid_labels = np.full(len(points), PLANE, dtype=np.int64)
+    solid_labels[~on_plane] = cluster_points(points[~on_plane], spacing, cfg)
+    solid_labels = reclaim(points, solid_labels, on_plane, spacing, cfg)
+    labels[solid] = solid_labels
+    faint = np.flatnonzero(~solid)
+    if len(faint):
+        dist, nearest = cKDTree(points).query(means[faint], k=1)
+        close = dist <= cfg.follow_radius * spacing
+        labels[faint[close]] = solid_labels[nearest[close]]
+    return Clustering(labels, spacing, planes)
+
+
+def clusters_of_clicks(
+    clicks: Sequence[LiftedClick], means: np.ndarray, opacities: np.ndarray, clustering: Clustering,
+    cfg: ClusteringConfig,
+) -> Dict[int, int]:
+    """The cluster each lifted click falls in (click index → cluster), by a vote of its nearest solid Gaussians.
+
+    Raises:
+        ClickError: the click is on a supporting plane, or on nothing any cluster holds. The message
+            names the click.
+    """
+    from scipy.spatial import cKDTree
+
+    solid = np.flatnonzero(opacities >= cfg.min_opacity)
+    tree = cKDTree(means[solid])
+    chosen: Dict[int, int] = {}
+    for click in clicks:
+        k = min(cfg.click_neighbours, len(solid))
+        dist, idx = tree.query(click.point.double().numpy(), k=k)
+        dist, idx = np.atleast_1d(dist), np.atleast_1d(idx)
+        near = solid[idx[dist <= cfg.click_radius * clustering.spacing]]
+        if len(near) == 0:
+            raise ClickError(f"{click.source}: no Gaussian of the base model lies at this point; click on an object")
+        values, counts = np.unique(clustering.labels[near], return_counts=True)
+        winner = int(values[np.argmax(counts)])
+        if winner == PLANE:
+            raise ClickError(f"{click.source}: this is a supporting surface (floor or wall plane), not an instance")
+        if winner == NOISE:
+            raise ClickError(f"{click.source}: no instance cluster holds this point (background or loose fuzz)")
+        chosen[click.index] = winner
+    return chosen
+
+
+def geodesic_split(
+    means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], spacing: float, cfg: ClusteringConfig
+) -> np.ndarray:
+    """Splits one cluster among several seeds: each point goes to the seed nearest along a kNN graph.
+
+    Edges are lengthened where the colour changes, so the cut between two touching objects (a chair
+    tucked under a table) follows their contact rather than the midpoint between the clicks.
+
+    Args:
+        means: [P, 3] points of the cluster; colours: [P, 3] in [0, 1].
+        seeds: point index of each seed.
+
+    Returns:
+        [P] index into ``seeds`` (-1: not connected to any seed).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    k = min(cfg.split_neighbours + 1, len(means))
+    dist, idx = cKDTree(means).query(means, k=k)
+    rows = np.repeat(np.arange(len(means)), k - 1)
+    cols = idx[:, 1:].ravel()
+    colour_step = np.linalg.norm(colours[rows] - colours[cols], axis=-1)
+    weights = dist[:, 1:].ravel() / spacing * (1.0 + cfg.split_colour_weight * colour_step) + 1e-9
+    graph = coo_matrix((weights, (rows, cols)), shape=(len(means), len(means))).tocsr()
+    distances = dijkstra(graph, directed=False, indices=list(seeds))  # [S, P]
+    owner = np.argmin(distances, axis=0)
+    owner[~np.isfinite(distances.min(axis=0))] = -1
+    return owner
+
+
+def instance_ids(
+    clicks: Sequence[LiftedClick], means: np.ndarray, opacities: np.ndarray, colours: np.ndarray,
+    clustering: Clustering, cfg: ClusteringConfig,
+) -> np.ndarray:
+    """Per-Gaussian instance id: click number ``i`` (0-based position in ``clicks``) → id ``i + 1``; 0 = background.
+
+    A cluster holding several clicks is split between them (:func:`geodesic_split`), unless two of its
+    clicks are so close that they are one object clicked twice.
+
+    Raises:
+        ClickError: from :func:`clusters_of_clicks`, or two clicks on the same spot of one cluster.
+    """
+    from scipy.spatial import cKDTree
+
+    chosen = clusters_of_clicks(clicks, means, opacities, clustering, cfg)
+    ids = np.zeros(len(means), dtype=np.int64)
+    by_cluster: Dict[int, List[int]] = {}
+    for position, click in enumerate(clicks):
+        by_cluster.setdefault(chosen[click.index], []).append(position)
+    for cluster, positions in by_cluster.items():
+        members = np.flatnonzero(clustering.labels == cluster)
+        if len(positions) == 1:
+            ids[members] = positions[0] + 1
+            continue
+        points = np.stack([clicks[p].point.double().numpy() for p in positions])
+        gaps = np.linalg.norm(points[:, None] - points[None], axis=-1)
+        np.fill_diagonal(gaps, np.inf)
+        a, b = np.unravel_index(np.argmin(gaps), gaps.shape)
+        if gaps[a, b] <= cfg.duplicate_radius * clustering.spacing:
+            raise ClickError(
+                f"{clicks[positions[b]].source}: falls on the same object as {clicks[positions[a]].source} "
+                "(same cluster, a few Gaussians apart); one click per instance"
+            )
+        _, seeds = cKDTree(means[members]).query(points, k=1)
+        owner = geodesic_split(means[members], colours[members], seeds, clustering.spacing, cfg)
+        for j, p in enumerate(positions):
+            ids[members[owner == j]] = p + 1
+    return ids

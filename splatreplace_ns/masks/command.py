@@ -1,0 +1,194 @@
+"""``splatreplace masks DATA``: instance masks for a capture from one click per instance.
+
+Trains (or reuses, ``--load-config``) the base 3DGS* stage, lifts each click of ``clicks.json`` to 3D
+with the rendered depth, finds the clicked instances in 3D (supporting planes removed, Gaussian centres
+clustered), renders every instance into every frame and cleans the borders (``geometric``), or prompts
+a SAM-style ONNX pair with the projected clicks and the instance's box (``onnx-sam``). Writes
+``masks/NNNN.png`` for every frame and the ``instance_mask_path`` / ``instances`` entries of
+``transforms.json`` (original kept as ``transforms.json.before-masks``). Every bad input is reported
+before anything is written.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional
+
+import cv2
+import numpy as np
+import torch
+import tyro
+from typing_extensions import Annotated
+
+from splatreplace_ns.masks.base import BaseModel, FrameCameras, frame_cameras, load_base, train_base
+from splatreplace_ns.masks.clustering import ClusteringConfig, cluster_gaussians, instance_ids
+from splatreplace_ns.masks.colmap_input import colmap_to_transforms
+from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, project_points, view_and_intrinsics, visible_by_depth
+from splatreplace_ns.masks.onnx_sam import OnnxSam, sam_labels
+from splatreplace_ns.masks.render import BorderConfig, front_to_back_order, labels_from_weights, one_hot_labels, render_instance_masks
+from splatreplace_ns.masks.writer import write_dataset_masks
+from splatreplace_ns.segment.clicks import Click, load_clicks
+
+
+@dataclass
+class MasksCommand:
+    """Write instance masks for every frame of a capture from one click per instance."""
+
+    data: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATA")]
+    """Dataset folder: transforms.json (nerfstudio / ns-process-data) or a COLMAP model in sparse/0."""
+    clicks: Optional[Path] = None
+    """clicks.json with one click per instance (default: DATA/clicks.json)."""
+    backend: Literal["geometric", "onnx-sam"] = "geometric"
+    """geometric: rendered 3D clusters + GrabCut, no learned weights. onnx-sam: a SAM-style ONNX pair."""
+    sam_encoder: Optional[Path] = None
+    """onnx-sam: image encoder .onnx (one input [1, 3, S, S])."""
+    sam_decoder: Optional[Path] = None
+    """onnx-sam: mask decoder .onnx (the usual SAM export's inputs)."""
+    load_config: Optional[Path] = None
+    """Reuse a trained run (its config.yml) instead of training the base stage."""
+    base_iterations: int = 3000
+    """Base 3DGS* iterations when training here."""
+    output_dir: Path = Path("outputs")
+    """Where the base run is saved (reuse it later with --load-config)."""
+    clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
+    border: BorderConfig = field(default_factory=BorderConfig)
+    min_alpha: float = 0.5
+    """A click must land on a pixel at least this opaque in the base model's render."""
+
+    def main(self) -> Dict:
+        report = make_masks(self)
+        print(
+            f"wrote {report['frames']} masks for {len(report['instances'])} instances to {self.data / 'masks'} "
+            f"and {self.data / 'transforms.json'} ({report['time_s']['masks']:.1f} s after the base stage; "
+            f"base run: {report['config']})"
+        )
+        return report
+
+
+def _transforms(data: Path) -> Path:
+    transforms = data / "transforms.json"
+    if not transforms.exists():
+        colmap_to_transforms(data)
+    return transforms
+
+
+def _clicks(cfg: MasksCommand) -> List[Click]:
+    path = cfg.clicks or cfg.data / "clicks.json"
+    if not path.exists():
+        raise FileNotFoundError(
+            f"{path}: no clicks. `splatreplace masks` needs clicks.json with one click per instance "
+            '([{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]); clicking in the viewer '
+            "is available in `ns-train splat-replace`, not here"
+        )
+    return load_clicks(path)
+
+
+def read_rgb(path: Path, width: int, height: int) -> np.ndarray:
+    """[H, W, 3] uint8 RGB of a frame, checked against its camera's size."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise FileNotFoundError(f"{path}: image not found or unreadable")
+    if image.shape[:2] != (height, width):
+        raise ValueError(f"{path}: size {image.shape[1]}x{image.shape[0]} does not match its camera {width}x{height}")
+    return np.ascontiguousarray(image[..., ::-1])
+
+
+@torch.no_grad()
+def lift_clicks(model, frames: FrameCameras, clicks: List[Click], min_alpha: float) -> List[LiftedClick]:
+    """Each click → its surface point, from the base model's rendered depth in the click's frame."""
+    ones = torch.ones(model.num_points, 1, device=model.device)
+    lifted = []
+    for click in clicks:
+        source = f"click {click.index} ({click.file_path} at {list(click.xy)})"
+        frame = frames.index_of(click.file_path, source)
+        camera = frames.cameras[frame : frame + 1].to(model.device)
+        _, alpha, depth = model.render_features(camera, ones)
+        viewmat, K, _, _ = view_and_intrinsics(camera)
+        lifted.append(lift_click(click.index, frame, click.xy, click.cls, source, depth.cpu(), alpha.cpu(), viewmat.cpu(), K.cpu(), min_alpha))
+    return lifted
+
+
+def instance_labels_of_gaussians(
+    model, lifted: List[LiftedClick], cfg: ClusteringConfig
+) -> torch.Tensor:
+    """[N] instance id per Gaussian (click k → id k + 1, 0 = background)."""
+    means = model.means.detach().cpu().double().numpy()
+    opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
+    clustering = cluster_gaussians(means, opacities, cfg)
+    return torch.from_numpy(instance_ids(lifted, means, opacities, gaussian_colours(model), clustering, cfg))
+
+
+def gaussian_colours(model) -> np.ndarray:
+    """[N, 3] base (view-independent) colour of each Gaussian in [0, 1]."""
+    from nerfstudio.models.splatfacto import SH2RGB
+
+    dc = model.features_dc.detach().cpu()
+    rgb = SH2RGB(dc) if model.config.sh_degree > 0 else torch.sigmoid(dc)
+    return rgb.clamp(0, 1).double().numpy()
+
+
+@torch.no_grad()
+def sam_view_labels(
+    model, sam: OnnxSam, camera, image: np.ndarray, instance_of_gaussian: torch.Tensor, lifted: List[LiftedClick],
+    min_weight: float,
+) -> np.ndarray:
+    """onnx-sam mask of one view: prompts from the rendered instances and the visible projected clicks."""
+    num = len(lifted)
+    weights, alpha, depth = model.render_features(camera, one_hot_labels(instance_of_gaussian, num).to(model.device))
+    rendered = labels_from_weights(weights, min_weight).cpu().numpy()
+    viewmat, K, _, _ = view_and_intrinsics(camera)
+    points = torch.stack([c.point for c in lifted]).to(viewmat.device)
+    seen = visible_by_depth(points, viewmat, K, depth, alpha)
+    uv, _ = project_points(points, viewmat, K)
+    prompts = {k + 1: [tuple(uv[k].tolist())] for k in range(num) if bool(seen[k])}
+    order = front_to_back_order(rendered, depth[..., 0].cpu().numpy(), num)
+    return sam_labels(sam, image, rendered, order, prompts)
+
+
+def make_masks(cfg: MasksCommand) -> Dict:
+    """Everything ``splatreplace masks`` does; returns a report (instances, timings, the base run's config)."""
+    data = Path(cfg.data)
+    transforms = _transforms(data)
+    clicks = _clicks(cfg)
+    sam = OnnxSam(cfg.sam_encoder, cfg.sam_decoder) if cfg.backend == "onnx-sam" else None
+    meta = json.loads(transforms.read_text())
+    names = {Path(f["file_path"]).name for f in meta.get("frames", [])}
+    for click in clicks:
+        if Path(click.file_path).name not in names:
+            raise ClickError(f"click {click.index} ({click.file_path}): not a frame of {transforms}")
+
+    start = time.perf_counter()
+    base: BaseModel = load_base(cfg.load_config) if cfg.load_config else train_base(data, cfg.output_dir, cfg.base_iterations)
+    base_s = time.perf_counter() - start
+    model = base.model
+    model.eval()
+    frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale)
+
+    t0 = time.perf_counter()
+    lifted = lift_clicks(model, frames, clicks, cfg.min_alpha)
+    instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering)
+    masks = []
+    for index, file_path in enumerate(frames.file_paths):
+        camera = frames.cameras[index : index + 1].to(model.device)
+        width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
+        image = read_rgb(data / file_path, width, height)
+        if sam is None:
+            mask = render_instance_masks(
+                model, camera, instance_of_gaussian, len(lifted), image, cfg.border, frames.distortion[index]
+            )
+        else:
+            mask = sam_view_labels(model, sam, camera, image, instance_of_gaussian, lifted, cfg.border.min_weight)
+        masks.append(mask.astype(np.uint16))
+    instances = [{"id": k + 1, "class": click.cls} for k, click in enumerate(lifted)]
+    write_dataset_masks(data, masks, instances)
+    return {
+        "instances": instances,
+        "frames": len(masks),
+        "gaussians_per_instance": {k + 1: int((instance_of_gaussian == k + 1).sum()) for k in range(len(lifted))},
+        "time_s": {"base": base_s, "masks": time.perf_counter() - t0},
+        "config": str(base.config_path),
+        "backend": cfg.backend,
+    }

@@ -1,0 +1,128 @@
+"""Clicks to 3D and back: lift a pixel with rendered depth, project points, decide visibility by depth.
+
+Conventions: cameras are nerfstudio's (OpenGL camera→world); pixel ``(u, v)`` = (column, row) covers
+``[u, u+1) x [v, v+1)``, so a click at integer ``(u, v)`` is the ray through ``(u + 0.5, v + 0.5)``,
+the renderer's pixel centre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Tuple
+
+import torch
+
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import get_viewmat
+
+
+class ClickError(ValueError):
+    """A click that cannot become an instance; the message names the click."""
+
+
+@dataclass(frozen=True)
+class LiftedClick:
+    index: int
+    """Position in clicks.json."""
+    frame: int
+    """Frame index in transforms.json."""
+    xy: Tuple[float, float]
+    cls: str
+    point: torch.Tensor
+    """[3] the clicked surface point, normalised world frame."""
+    source: str
+    """Human-readable origin, for messages."""
+
+
+def view_and_intrinsics(camera: Cameras) -> Tuple[torch.Tensor, torch.Tensor, int, int]:
+    """World→camera (OpenCV) [4, 4], K [3, 3], width, height of a one-camera ``Cameras``."""
+    viewmat = get_viewmat(camera.camera_to_worlds.reshape(1, 3, 4))[0]
+    K = camera.get_intrinsics_matrices().reshape(3, 3)
+    return viewmat, K, int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
+
+
+def lift_pixel(u: float, v: float, depth: float, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """The 3D point at z-depth ``depth`` on the ray through pixel ``(u, v)``'s centre.
+
+    Args:
+        u, v: pixel (column, row).
+        depth: camera-space z of the surface there.
+        viewmat: [4, 4] world→camera (OpenCV).
+        K: [3, 3] intrinsics.
+
+    Returns:
+        [3] world point.
+    """
+    x = (u + 0.5 - float(K[0, 2])) / float(K[0, 0]) * depth
+    y = (v + 0.5 - float(K[1, 2])) / float(K[1, 1]) * depth
+    camera_point = torch.tensor([x, y, depth, 1.0], dtype=viewmat.dtype)
+    return (torch.linalg.inv(viewmat) @ camera_point)[:3]
+
+
+def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Pixel coordinates (continuous, pixel centres at ``i + 0.5``) and camera z of world points.
+
+    Args:
+        points: [P, 3] world points.
+        viewmat: [4, 4] world→camera (OpenCV).
+        K: [3, 3].
+
+    Returns:
+        uv [P, 2], z [P] (z <= 0: behind the camera, uv meaningless).
+    """
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    safe = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+    u = K[0, 0] * cam[:, 0] / safe + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / safe + K[1, 2]
+    return torch.stack([u, v], dim=-1), z
+
+
+def visible_by_depth(
+    points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
+    relative_tolerance: float = 0.05, min_alpha: float = 0.5,
+) -> torch.Tensor:
+    """Whether points are seen in a view: inside the image, in front, and not behind the rendered surface.
+
+    Args:
+        points: [P, 3] world points.
+        depth: [H, W, 1] rendered z-depth of the view.
+        alpha: [H, W, 1] rendered opacity of the view.
+        relative_tolerance: a point is hidden when it lies more than this fraction of its depth behind the
+            rendered surface.
+
+    Returns:
+        [P] bool.
+    """
+    H, W = depth.shape[:2]
+    uv, z = project_points(points, viewmat, K)
+    col, row = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
+    inside = (z > 1e-6) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+    col_c, row_c = col.clamp(0, W - 1), row.clamp(0, H - 1)
+    surface = depth[row_c, col_c, 0]
+    covered = alpha[row_c, col_c, 0] >= min_alpha
+    in_front = ~covered | (z <= surface * (1.0 + relative_tolerance))
+    return inside & in_front
+
+
+def lift_click(
+    index: int, frame: int, xy: Tuple[float, float], cls: str, source: str,
+    depth: torch.Tensor, alpha: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, min_alpha: float = 0.5,
+) -> LiftedClick:
+    """Lifts one click with the base model's rendered depth of its view.
+
+    Args:
+        depth: [H, W, 1], alpha: [H, W, 1] rendered in the click's frame.
+
+    Raises:
+        ClickError: outside the image, or nothing opaque rendered there (sky, empty space).
+    """
+    H, W = depth.shape[:2]
+    u, v = xy
+    if not (0 <= u < W and 0 <= v < H):
+        raise ClickError(f"{source}: pixel {xy} is outside the {W}x{H} image")
+    row, col = int(v), int(u)
+    if float(alpha[row, col, 0]) < min_alpha or not bool(torch.isfinite(depth[row, col, 0])):
+        raise ClickError(f"{source}: nothing opaque is rendered at this pixel (empty space or sky); click on an object")
+    point = lift_pixel(u, v, float(depth[row, col, 0]), viewmat.double(), K.double()).float()
+    return LiftedClick(index, frame, (float(u), float(v)), cls, point, source)

@@ -1,0 +1,200 @@
+"""Pure parts of `splatreplace masks`: lifting, clustering, label rendering helpers, writing, COLMAP I/O."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from splatreplace_ns.bench.masks import boundary_f_score
+from splatreplace_ns.masks.clustering import ClusteringConfig, cluster_gaussians, instance_ids
+from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, lift_pixel, project_points, visible_by_depth
+from splatreplace_ns.masks.render import distort_map, grabcut_instance, labels_from_weights
+from splatreplace_ns.masks.writer import BACKUP_SUFFIX, write_dataset_masks
+from splatreplace_ns.register.virtual_cameras import look_at
+
+K = torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def test_lift_then_project_returns_the_pixel():
+    viewmat = torch.from_numpy(look_at(np.array([2.0, -1.0, 1.5]), np.zeros(3)))
+    point = lift_pixel(10.0, 30.0, 2.5, viewmat, K)
+    uv, z = project_points(point[None], viewmat, K)
+    assert torch.allclose(uv[0], torch.tensor([10.5, 30.5], dtype=torch.float64), atol=1e-9)
+    assert float(z[0]) == pytest.approx(2.5)
+
+
+def test_visibility_by_depth_hides_points_behind_the_surface():
+    viewmat = torch.eye(4, dtype=torch.float64)
+    depth = torch.full((48, 64, 1), 2.0, dtype=torch.float64)
+    alpha = torch.ones(48, 64, 1, dtype=torch.float64)
+    points = torch.stack([
+        lift_pixel(20, 20, 1.9, viewmat, K),   # in front of the surface
+        lift_pixel(20, 20, 2.05, viewmat, K),  # on it (within 5 %)
+        lift_pixel(20, 20, 3.0, viewmat, K),   # behind it
+        torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64),  # behind the camera
+        lift_pixel(80, 20, 1.0, viewmat, K),   # outside the image
+    ])
+    assert visible_by_depth(points, viewmat, K, depth, alpha).tolist() == [True, True, False, False, False]
+
+
+def test_lift_click_rejects_empty_and_outside_pixels():
+    viewmat = torch.eye(4, dtype=torch.float64)
+    depth = torch.full((48, 64, 1), 2.0)
+    alpha = torch.zeros(48, 64, 1)
+    alpha[10:20, 10:20] = 1.0
+    ok = lift_click(0, 0, (12.0, 15.0), "crate", "click 0", depth, alpha, viewmat, K)
+    assert float(ok.point[2]) == pytest.approx(2.0)
+    with pytest.raises(ClickError, match="click 1: nothing opaque"):
+        lift_click(1, 0, (40.0, 40.0), "crate", "click 1", depth, alpha, viewmat, K)
+    with pytest.raises(ClickError, match="click 2: pixel .* outside the 64x48 image"):
+        lift_click(2, 0, (64.0, 3.0), "crate", "click 2", depth, alpha, viewmat, K)
+
+
+def boxes_on_a_floor(seed: int = 0):
+    """Surface samples of a floor and of three boxes standing on it (two of them touching), as a base model would hold them."""
+    rng = np.random.default_rng(seed)
+    floor = np.c_[rng.uniform(-2, 2, (6000, 2)), rng.normal(0, 0.002, 6000)]
+
+    def box(centre, size, n):
+        pts = rng.uniform(-0.5, 0.5, (n, 3))
+        face = rng.integers(0, 3, n)
+        side = np.sign(pts[np.arange(n), face])
+        side[face == 2] = 1.0  # the bottom face stands on the floor: no camera sees it, no Gaussian is there
+        pts[np.arange(n), face] = side * 0.5
+        return pts * size + centre
+
+    a = box(np.array([-1.0, 0.0, 0.25]), np.array([0.5, 0.5, 0.5]), 1500)
+    b = box(np.array([0.8, 0.0, 0.25]), np.array([0.5, 0.5, 0.5]), 1500)
+    c = box(np.array([0.8, 0.52, 0.25]), np.array([0.5, 0.5, 0.5]), 1500)  # touches b
+    means = np.concatenate([floor, a, b, c])
+    truth = np.repeat([0, 1, 2, 3], [len(floor), len(a), len(b), len(c)])
+    colours = np.array([[0.5, 0.5, 0.5], [0.8, 0.2, 0.2], [0.2, 0.8, 0.2], [0.2, 0.2, 0.8]])[truth]
+    return means, truth, colours
+
+
+def lifted(index, point):
+    return LiftedClick(index, 0, (0.0, 0.0), "box", torch.tensor(point, dtype=torch.float32), f"click {index}")
+
+
+def test_floor_removed_and_clicked_boxes_found_touching_ones_split():
+    means, truth, colours = boxes_on_a_floor()
+    opacities = np.ones(len(means))
+    clicks = [lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.8, -0.1, 0.5]), lifted(2, [0.8, 0.6, 0.5])]
+    cfg = ClusteringConfig()
+    clustering = cluster_gaussians(means, opacities, cfg)
+    assert len(clustering.planes) >= 1
+    normal = clustering.planes[0][:3] / np.linalg.norm(clustering.planes[0][:3])
+    assert abs(normal[2]) > 0.99  # the floor, z = 0
+    ids = instance_ids(clicks, means, opacities, colours, clustering, cfg)
+    for k in (1, 2, 3):
+        a, b = ids == k, truth == k
+        assert (a & b).sum() / (a | b).sum() > 0.9, k
+    assert (ids[truth == 0] == 0).mean() > 0.97
+
+
+def test_bad_clicks_are_named():
+    means, truth, colours = boxes_on_a_floor()
+    opacities = np.ones(len(means))
+    cfg = ClusteringConfig()
+
+    def run(clicks):
+        clustering = cluster_gaussians(means, opacities, cfg)
+        return instance_ids(clicks, means, opacities, colours, clustering, cfg)
+
+    with pytest.raises(ClickError, match="click 1: this is a supporting surface"):
+        run([lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.0, 1.5, 0.0])])
+    with pytest.raises(ClickError, match="click 1: no Gaussian of the base model"):
+        run([lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.0, 0.0, 1.5])])
+    with pytest.raises(ClickError, match="click 1: falls on the same object as click 0"):
+        run([lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [-1.0, 0.02, 0.5])])
+
+
+def test_labels_from_weights_front_wins_and_faint_is_background():
+    w = torch.zeros(1, 3, 3)
+    w[0, 0] = torch.tensor([0.1, 0.7, 0.2])  # instance 1 in front
+    w[0, 1] = torch.tensor([0.6, 0.3, 0.1])  # background Gaussians in front
+    w[0, 2] = torch.tensor([0.0, 0.3, 0.1])  # too faint
+    assert labels_from_weights(w, 0.5).tolist() == [[1, 0, 0]]
+
+
+def test_distort_map_follows_opencv_projection():
+    Kn = K.numpy()
+    distortion = np.array([-0.2, 0.05, 0.0, 0.0, 0.001, -0.002])
+    ideal = np.zeros((48, 64), dtype=np.int64)
+    ideal[20:24, 40:44] = 7
+    warped = distort_map(ideal, Kn, distortion)
+    # the ideal block's centre, projected through OpenCV's distortion model, lands inside the warped block
+    centre = np.array([[(42.0 - Kn[0, 2]) / Kn[0, 0], (22.0 - Kn[1, 2]) / Kn[1, 1], 1.0]])
+    coeffs = np.array([distortion[0], distortion[1], distortion[4], distortion[5], distortion[2]])
+    uv, _ = cv2.projectPoints(centre, np.zeros(3), np.zeros(3), Kn, coeffs)
+    u, v = uv[0, 0]
+    assert warped[int(v), int(u)] == 7
+    assert (warped == 7).sum() > 8
+    assert np.array_equal(distort_map(ideal, Kn, np.zeros(6)), ideal)
+
+
+def test_grabcut_pulls_a_bloated_mask_onto_the_object():
+    rng = np.random.default_rng(0)
+    image = np.clip(rng.normal(90, 8, (48, 64, 3)), 0, 255).astype(np.uint8)
+    truth = np.zeros((48, 64), dtype=bool)
+    truth[14:34, 20:44] = True
+    image[truth] = np.clip(rng.normal(200, 8, (int(truth.sum()), 3)), 0, 255).astype(np.uint8)
+    bloated = cv2.dilate(truth.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    cleaned = grabcut_instance(image, bloated, band=2, iterations=3)
+
+    def iou(a):
+        return (a & truth).sum() / (a | truth).sum()
+
+    assert iou(cleaned) > iou(bloated) and iou(cleaned) > 0.95
+
+
+def test_boundary_f_is_one_on_identical_masks_and_drops_with_a_shift():
+    gt = np.zeros((2, 48, 64), dtype=np.int64)
+    gt[:, 10:30, 10:30] = 3
+    assert boundary_f_score(gt.copy(), gt, {3: 3})["boundary_f"] == pytest.approx(1.0)
+    shifted = np.roll(gt, 6, axis=2)
+    assert boundary_f_score(shifted, gt, {3: 3}, tolerance=2)["boundary_f"] < 0.7
+
+
+def test_writer_keeps_a_backup_and_rewrites_the_same_bytes(tmp_path):
+    meta = {"camera_model": "PINHOLE", "frames": [{"file_path": "images/a.png"}, {"file_path": "images/b.png"}]}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    original = (tmp_path / "transforms.json").read_bytes()
+    masks = [np.full((4, 5), 1, np.uint16), np.arange(20, dtype=np.uint16).reshape(4, 5) % 3]
+    instances = [{"id": 1, "class": "crate"}, {"id": 2, "class": "crate"}]
+    write_dataset_masks(tmp_path, masks, instances)
+    first = (tmp_path / "transforms.json").read_bytes()
+    written = json.loads(first)
+    assert [f["instance_mask_path"] for f in written["frames"]] == ["masks/0000.png", "masks/0001.png"]
+    assert written["instances"] == instances
+    back = cv2.imread(str(tmp_path / "masks/0001.png"), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == np.uint16 and np.array_equal(back, masks[1])
+    write_dataset_masks(tmp_path, masks, instances)
+    assert (tmp_path / "transforms.json").read_bytes() == first
+    assert (tmp_path / ("transforms.json" + BACKUP_SUFFIX)).read_bytes() == original
+    assert not list(tmp_path.rglob(".*.tmp"))
+
+
+def test_colmap_export_and_import_round_trip(tmp_path):
+    from splatreplace_ns.masks.colmap_input import colmap_to_transforms
+    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.sim.colmap_export import export_colmap
+
+    scene = tmp_path / "tiny"
+    make_scene("tiny", scene, n_train=4, n_test=2)
+    capture = tmp_path / "colmap"
+    export_colmap(scene, capture)
+    assert (capture / "sparse/0/cameras.bin").exists() and (capture / "sparse/0/points3D.bin").exists()
+    transforms = colmap_to_transforms(capture)
+    ours, sim = json.loads(transforms.read_text()), json.loads((scene / "transforms.json").read_text())
+    assert ours["camera_model"] == "PINHOLE"
+    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+        assert ours[key] == pytest.approx(sim[key])
+    assert [f["file_path"] for f in ours["frames"]] == [f["file_path"] for f in sim["frames"]]
+    for a, b in zip(ours["frames"], sim["frames"]):
+        assert np.allclose(a["transform_matrix"], b["transform_matrix"], atol=1e-9)
+    assert (capture / ours["ply_file_path"]).exists()
