@@ -1,8 +1,10 @@
 """``splatreplace demo``: the embedded default run.
 
-Makes a small synthetic ``office`` scene if it is absent, trains the base 3DGS* stage on it with
-nerfstudio's Trainer (CPU or CUDA) and prints test-view metrics. The later stages (segmentation,
-registration, shared template) plug into the same run as they land.
+Makes a small synthetic ``office`` scene if it is absent, then trains, with nerfstudio's Trainer (CPU or
+CUDA), the whole method (base 3DGS* → contrastive features → segmentation from clicks.json → registration
+→ shared templates → fine-tuning) and the 3DGS* baseline with the same total number of iterations. Prints
+full-image and masked test-view metrics of both, writes a side-by-side PNG (baseline | ours | ground truth)
+and the instanced export of ours.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Dict, Optional
 
 from rich.console import Console
 from rich.table import Table
@@ -21,27 +23,32 @@ CONSOLE = Console()
 
 @dataclass
 class DemoCommand:
-    """Run splat-replace on the embedded default scene and print the metric table."""
+    """Run splat-replace and the 3DGS* baseline on the embedded default scene and print the metric table."""
 
     out: Path = Path("demo_output")
-    """Folder for the generated scene, the trained model and the results."""
+    """Folder for the generated scene, the trained runs, the figure and the results."""
     preset: str = "office"
     """Synthetic preset to generate when no data is given."""
-    res: str = "160x120"
+    res: str = "128x96"
     """Resolution of the generated scene (WxH)."""
-    n_train: int = 60
+    n_train: int = 48
     """Training views of the generated scene."""
-    n_test: int = 12
+    n_test: int = 8
     """Test views of the generated scene (far from the training trajectory)."""
-    iterations: int = 3000
-    """Base-stage iterations."""
+    base_iterations: int = 1500
+    """Base 3DGS* iterations of ours."""
+    contrastive_iterations: int = 500
+    """Contrastive-feature iterations."""
+    finetune_iterations: int = 1000
+    """Shared-template fine-tuning iterations (the baseline trains base + contrastive + finetune iterations)."""
     data: Optional[Path] = None
-    """Use this dataset instead of generating one."""
+    """Use this dataset (with clicks.json and instance masks) instead of generating one."""
     json: Optional[Path] = None
     """Also write every printed figure to this JSON file."""
 
-    def main(self) -> None:
-        from splatreplace_ns.method.train import evaluate_test_views, make_trainer_config, run_training
+    def main(self) -> Dict:
+        from splatreplace_ns.bench.template import train_ours_and_baseline
+        from splatreplace_ns.eval.figures import side_by_side
         from splatreplace_ns.sim import make_scene
 
         start = time.perf_counter()
@@ -52,33 +59,46 @@ class DemoCommand:
                 CONSOLE.print(f"[bold]Generating the '{self.preset}' scene at {self.res} in {data}")
                 make_scene(self.preset, data, res=self.res, seed=0, n_train=self.n_train, n_test=self.n_test)
         sim_s = time.perf_counter() - start
+        B, C, F = self.base_iterations, self.contrastive_iterations, self.finetune_iterations
+        CONSOLE.print(f"[bold]Training splat-replace ({B} base + {C} contrastive + {F} fine-tuning iterations), "
+                      f"then the 3DGS* baseline ({B + C + F} iterations)")
+        pair = train_ours_and_baseline(data, self.out / "runs", B, C, F)
 
-        config = make_trainer_config(data, self.out / "runs", self.iterations, experiment_name="base", progress=True)
-        CONSOLE.print(f"[bold]Training the base 3DGS* stage for {self.iterations} iterations")
-        t0 = time.perf_counter()
-        trainer = run_training(config)
-        train_s = time.perf_counter() - t0
-        metrics = evaluate_test_views(trainer)
+        figure = self.out / "side_by_side.png"
+        n_test = len(pair["ours_trainer"].pipeline.datamanager.eval_dataset)
+        side_by_side({"baseline": pair["baseline_trainer"].pipeline, "ours": pair["ours_trainer"].pipeline},
+                     list(range(min(n_test, 4))), figure)
 
-        table = Table(title="splat-replace demo: test views")
-        table.add_column("method")
-        for name in ("psnr", "ssim", "lpips"):
-            table.add_column(name)
-        table.add_row(
-            "3DGS* (base stage)",
-            f"{metrics['psnr']:.2f}",
-            f"{metrics['ssim']:.3f}",
-            f"{metrics['lpips']:.3f}" if "lpips" in metrics else "unavailable",
-        )
+        table = Table(title="splat-replace demo: test views (same total iterations)")
+        for col in ("method", "PSNR", "PSNR masked", "SSIM", "SSIM masked"):
+            table.add_column(col)
+        for name in ("baseline", "ours"):
+            m = pair[name]
+            table.add_row("3DGS* baseline" if name == "baseline" else "splat-replace (ours)",
+                          *(("n/a" if m[k] is None else f"{m[k]:.{d}f}")
+                            for k, d in (("psnr", 2), ("psnr_masked", 2), ("ssim", 3), ("ssim_masked", 3))))
         CONSOLE.print(table)
+        CONSOLE.print("LPIPS and KID: reported by ns-eval when their weights are on disk (never computed with random weights)")
         total_s = time.perf_counter() - start
-        CONSOLE.print(f"config: {config.get_base_dir() / 'config.yml'}  time: {total_s:.0f} s")
+        config = pair["ours_config"].get_base_dir() / "config.yml"
+        sizes = pair["sizes"]
+        CONSOLE.print(f"side-by-side (baseline | ours | ground truth): {figure}")
+        if "instanced_path" in sizes:
+            CONSOLE.print(f"instanced export: {sizes['instanced_path']} ({sizes['instanced_bytes'] / 1e6:.2f} MB; "
+                          f"baseline PLY {sizes['baseline_ply_bytes'] / 1e6:.2f} MB)")
+        CONSOLE.print(f"config of ours: {config}  (ns-eval --load-config {config})  total time: {total_s:.0f} s")
         result = {
             "data": str(data),
-            "base": {k: float(v) for k, v in metrics.items()},
-            "time_s": {"sim": sim_s, "base": train_s, "total": total_s},
-            "config": str(config.get_base_dir() / "config.yml"),
+            "baseline": pair["baseline"],
+            "ours": pair["ours"],
+            "registration": pair["registration"],
+            "sizes": sizes,
+            "figure": str(figure),
+            "time_s": {"sim": sim_s, **pair["times"], "total": total_s},
+            "iterations": {"base": B, "contrastive": C, "finetune": F, "baseline": B + C + F},
+            "config": str(config),
         }
         if self.json is not None:
             self.json.parent.mkdir(parents=True, exist_ok=True)
             self.json.write_text(json.dumps(result, indent=2))
+        return result

@@ -73,3 +73,37 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
             self.config.contrastive_mask_samples,
             generator=generator,
         )
+
+    def training_view_cameras(self, width: int, height: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The training cameras as world→camera (OpenCV) matrices with intrinsics scaled to ``width × height``.
+
+        Returns:
+            viewmats [V, 4, 4], Ks [V, 3, 3] (CPU, float32).
+        """
+        from nerfstudio.models.splatfacto import get_viewmat
+
+        cameras = self.train_dataset.cameras
+        viewmats = get_viewmat(cameras.camera_to_worlds.float())
+        Ks = cameras.get_intrinsics_matrices().float().clone()
+        Ks[:, 0] *= width / cameras.width.float().reshape(-1, 1)
+        Ks[:, 1] *= height / cameras.height.float().reshape(-1, 1)
+        return viewmats, Ks
+
+    def register_instances(self, instances: Dict, classes: Dict[int, str], config) -> Dict:
+        """The registration hook (paper §4.2): every instance onto its class template.
+
+        Renders the instances through the model's renderer from virtual cameras (or, for the
+        ``no_virtual_views`` ablation, from this datamanager's training cameras).
+
+        Args:
+            instances: {instance id: ``register.InstanceGaussians``}; classes: {instance id: class name};
+            config: ``register.RegistrationConfig``.
+        Returns:
+            {instance id: ``register.RegistrationResult``}.
+        """
+        from splatreplace_ns.register.pipeline import register_instances
+
+        cameras = None
+        if config.method == "no_virtual_views":
+            cameras = self.training_view_cameras(*config.image_size)
+        return register_instances(instances, classes, config, cameras=cameras)

@@ -36,7 +36,9 @@ def _adam(lr: float) -> dict:
     return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
 
 
-def splat_replace_trainer_config(base_iterations: int = 30000, contrastive_iterations: int = 5000) -> TrainerConfig:
+def splat_replace_trainer_config(
+    base_iterations: int = 30000, contrastive_iterations: int = 5000, finetune_iterations: int = 7000
+) -> TrainerConfig:
     """The full trainer configuration (also used in-process by the CLI, tests and benchmarks)."""
     return SplatReplaceTrainerConfig(
         method_name="splat-replace",
@@ -49,7 +51,9 @@ def splat_replace_trainer_config(base_iterations: int = 30000, contrastive_itera
         # CPU-first: pick the device that exists so `ns-train splat-replace --data DIR` just works.
         machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
         pipeline=SplatReplacePipelineConfig(
-            base_iterations=base_iterations, contrastive_iterations=contrastive_iterations
+            base_iterations=base_iterations,
+            contrastive_iterations=contrastive_iterations,
+            finetune_iterations=finetune_iterations,
         ),
         optimizers={
             "means": {
@@ -62,6 +66,9 @@ def splat_replace_trainer_config(base_iterations: int = 30000, contrastive_itera
             "scales": _adam(0.005),
             "quats": _adam(0.001),
             "features_contrastive": _adam(0.005),
+            "sh_offsets": _adam(0.0025),
+            "instance_poses": _adam(1e-4),
+            "template_class": _adam(0.0),  # a label carried through densification, never optimised
             "exposure": _adam(1e-3),
             "camera_opt": {
                 "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
@@ -77,5 +84,8 @@ def splat_replace_trainer_config(base_iterations: int = 30000, contrastive_itera
 
 splat_replace_method = MethodSpecification(
     config=splat_replace_trainer_config(),
-    description="Splat and Replace: base 3DGS*, contrastive features and one-click 3D instance segmentation (CPU or CUDA)",
+    description=(
+        "Splat and Replace: base 3DGS*, contrastive features, one-click 3D instance segmentation, registration "
+        "and shared-template fine-tuning of repeated objects (CPU or CUDA)"
+    ),
 )

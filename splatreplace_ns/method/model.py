@@ -1,8 +1,12 @@
-"""SplatReplaceModel: splatfacto that runs on CPU, plus the 3DGS* base-stage terms.
+"""SplatReplaceModel: splatfacto that runs on CPU, plus the 3DGS* base-stage terms and the shared templates.
 
 3DGS* (paper §4.1, §5.2) = splatfacto + L1 on opacity and scale + depth loss when frames carry
 depth + per-image affine exposure correction. Rendering goes through ``splatreplace_ns.render``
 (gsplat on CUDA, pure torch on CPU), so nothing here calls ``.cuda()``.
+
+After registration (stage ``finetune``) the stored Gaussians are the background plus one template per
+class in template space; every render composes them with the per-instance poses and SH offsets
+(``splatreplace_ns.template.compose``), so gradients from every instance reach the shared template.
 """
 
 from __future__ import annotations
@@ -26,9 +30,13 @@ from nerfstudio.models.splatfacto import (
 )
 from nerfstudio.utils.colors import get_color
 
+from splatreplace_ns.eval.metrics import psnr as image_psnr
+from splatreplace_ns.eval.metrics import ssim as image_ssim
 from splatreplace_ns.eval.perceptual import LocalLPIPS
 from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
 from splatreplace_ns.render import rasterize, resolve_backend
+from splatreplace_ns.template.build import InstanceTable
+from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses, offsets_l1
 
 allow_numpy_scalars_in_checkpoints()
 
@@ -100,6 +108,16 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     typical on CPU, Gaussians fitted at low resolution leave holes at full resolution."""
     feature_dim: int = 16
     """Channels of the per-Gaussian contrastive feature (segmentation stage)."""
+    template_mix: float = 0.8
+    """λ in c = λ c_shared + (1 − λ) c_offset (paper: 0.8)."""
+    template_union: Literal["merge", "all"] = "merge"
+    """How a class's registered instances form its template. all: their plain union (paper); every instance then
+    renders every copy's Gaussians. merge: one Gaussian (the most opaque) per cell of the template instance's
+    point spacing, so the template stays about one instance in size (much cheaper to render and store)."""
+    offset_l1_lambda: float = 0.01
+    """Weight of the L1 penalty that keeps per-instance SH offsets small."""
+    finetune_densify: bool = True
+    """Densify and prune template and background Gaussians during fine-tuning (statistics summed over instances)."""
 
 
 class SplatReplaceModel(SplatfactoModel):
@@ -151,8 +169,19 @@ class SplatReplaceModel(SplatfactoModel):
                 "features_contrastive": Parameter(
                     torch.randn(num_points, self.config.feature_dim) / self.config.feature_dim**0.5
                 ),
+                # shared-template stage: class of each Gaussian (0 = background; not optimised) and
+                # per-instance SH offsets [N, S, K, 3]; S = 0 until the templates are built
+                "template_class": Parameter(torch.zeros(num_points, 1)),
+                "sh_offsets": Parameter(torch.zeros(num_points, 0, dim_sh, 3)),
             }
         )
+        self.instance_table = InstanceTable.empty()
+        self.instance_pose_delta = Parameter(torch.zeros(0, 6))  # per instance (ω, δt), see template.compose
+        self.registration: Dict[int, Dict] = {}
+        self.finetune_start: Optional[int] = None
+        self.base_gaussians = 0  # Gaussians before the templates were built (for export size reports)
+        self.finetune_strategy: Optional[DefaultStrategy] = None
+        self.finetune_strategy_state: Dict = {}
         self.stage = "base"
         self.highlight: Optional[torch.Tensor] = None  # [N] bool, tinted in viewer renders while selecting
         # segmentation results: per-Gaussian instance (0 = background) and the instances' metadata
@@ -205,20 +234,149 @@ class SplatReplaceModel(SplatfactoModel):
     def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_gaussian_param_groups()
         groups["features_contrastive"] = [self.gauss_params["features_contrastive"]]
+        groups["template_class"] = [self.gauss_params["template_class"]]
+        groups["sh_offsets"] = [self.gauss_params["sh_offsets"]]
         return groups
 
+    def step_cb(self, optimizers, step):
+        super().step_cb(optimizers, step)
+        self._bind_optimizers()
+
+    def _bind_optimizers(self) -> None:
+        """Points each optimizer at the current parameter object. Loading a checkpoint (resume) replaces the
+        parameters after the optimizers were built; their state is kept when the shapes agree."""
+        for name, optimizer in self.optimizers.items():
+            if name in self.gauss_params:
+                current = self.gauss_params[name]
+            elif name == "instance_poses":
+                current = self.instance_pose_delta
+            else:
+                continue
+            for group in optimizer.param_groups:
+                old = group["params"][0]
+                if old is current:
+                    continue
+                state = optimizer.state.pop(old, None)
+                if state and all(v.shape == current.shape for k, v in state.items() if k != "step" and torch.is_tensor(v)):
+                    optimizer.state[current] = state
+                group["params"] = [current]
+
     def step_post_backward(self, step):
-        # Densification and pruning belong to the base stage; later stages keep the Gaussian set fixed.
+        # Densification and pruning belong to the base stage and, on the templates, to fine-tuning;
+        # the contrastive stage keeps the Gaussian set fixed.
         if self.stage == "base":
             super().step_post_backward(step)
+        elif self.stage == "finetune" and self.finetune_strategy is not None:
+            self._finetune_densify(step)
 
     def get_extra_state(self) -> Dict:
-        return {"stage": self.stage, "instance_labels": self.instance_labels, "instances": self.instances}
+        return {
+            "stage": self.stage,
+            "instance_labels": self.instance_labels,
+            "instances": self.instances,
+            "instance_table": self.instance_table.state(),
+            "registration": self.registration,
+            "finetune_start": self.finetune_start,
+            "base_gaussians": getattr(self, "base_gaussians", 0),
+        }
 
     def set_extra_state(self, state: Dict) -> None:
         self.stage = state.get("stage", "base")
         self.instance_labels = state.get("instance_labels", torch.zeros(self.num_points, dtype=torch.long))
         self.instances = list(state.get("instances", []))
+        table = state.get("instance_table")
+        self.instance_table = InstanceTable.from_state(table) if table else InstanceTable.empty()
+        self.registration = dict(state.get("registration", {}))
+        self.finetune_start = state.get("finetune_start")
+        self.base_gaussians = int(state.get("base_gaussians", 0))
+
+    def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
+        # The number of Gaussians, the offset slots and the instance count all change during training:
+        # size every tensor from the checkpoint before loading it.
+        for name in list(self.gauss_params.keys()):
+            key = f"gauss_params.{name}"
+            if key in state_dict:
+                self.gauss_params[name] = Parameter(torch.zeros_like(state_dict[key], device=self.device))
+        n = state_dict["gauss_params.means"].shape[0]
+        for name, param in list(self.gauss_params.items()):  # older checkpoints: missing entries start empty
+            if f"gauss_params.{name}" not in state_dict:
+                state_dict[f"gauss_params.{name}"] = torch.zeros((n,) + tuple(param.shape[1:]), device=self.device)
+                self.gauss_params[name] = Parameter(torch.zeros_like(state_dict[f"gauss_params.{name}"]))
+        if "instance_pose_delta" in state_dict:
+            self.instance_pose_delta = Parameter(torch.zeros_like(state_dict["instance_pose_delta"], device=self.device))
+        else:
+            state_dict["instance_pose_delta"] = self.instance_pose_delta.detach().clone()
+        self.step = 30000
+        torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
+
+    # ------------------------------------------------------------------ shared templates
+    @property
+    def has_templates(self) -> bool:
+        return self.stage == "finetune" and len(self.instance_table.ids) > 0
+
+    def composed_scene(self) -> ComposedScene:
+        """The replaced scene: background + every instance's posed copy of its template (world frame)."""
+        table = self.instance_table
+        delta = self.instance_pose_delta
+        q, R, t = instance_poses(table.q0.to(delta), table.t0.to(delta), delta)
+        sh = torch.cat((self.features_dc[:, None, :], self.features_rest), dim=1)
+        device = self.means.device
+        return compose_scene(
+            self.means, self.quats, self.scales, self.opacities, sh, self.gauss_params["sh_offsets"],
+            self.gauss_params["template_class"].detach()[:, 0].round().long(),
+            table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
+            lam=self.config.template_mix,
+        )
+
+    @torch.no_grad()
+    def bake_replaced_scene(self) -> None:
+        """Stores the composed scene as plain Gaussians (world frame, SH rotated and mixed per instance).
+
+        Renders stay the same; afterwards every tool that reads splatfacto's attributes (``ns-export
+        gaussian-splat``, ``ns-render``) sees the replaced scene. Used for inference-only loading.
+        """
+        if not self.has_templates:
+            return
+        scene = self.composed_scene()
+        baked = {
+            "means": scene.means, "quats": scene.quats, "scales": scene.log_scales,
+            "opacities": scene.logit_opacities.reshape(-1, 1), "features_dc": scene.sh[:, 0],
+            "features_rest": scene.sh[:, 1:],
+        }
+        for name, param in list(self.gauss_params.items()):
+            if name in baked:
+                value = baked[name]
+            elif name == "sh_offsets":
+                value = param.new_zeros((len(scene.means), 0) + tuple(param.shape[2:]))
+            elif name == "template_class":
+                value = param.new_zeros(len(scene.means), 1)
+            else:
+                value = param[scene.param_index]
+            self.gauss_params[name] = Parameter(value.detach().clone())
+        self.instance_labels = scene.instance_id.cpu()
+        self.instance_table = InstanceTable.empty()
+        self.instance_pose_delta = Parameter(self.instance_pose_delta.new_zeros(0, 6))
+        self.stage = "replaced"
+
+    def _finetune_densify(self, step: int) -> None:
+        """Densification on the stored Gaussians with screen-space statistics summed over instances."""
+        info = self.info
+        means2d = info.get("means2d")
+        if means2d is None or means2d.grad is None or info.get("param_index") is None:
+            return
+        radii = info["radii"].reshape(-1)
+        visible = radii > 0
+        grad = means2d.grad.reshape(-1, 2)[visible].clone()
+        packed = grad.detach().clone().requires_grad_(True)
+        packed.grad = grad
+        packed_info = {
+            "means2d": packed, "radii": radii[visible].float(), "gaussian_ids": info["param_index"][visible],
+            "width": info["width"], "height": info["height"], "n_cameras": 1,
+        }
+        self.finetune_strategy.step_post_backward(
+            params=self.gauss_params, optimizers=self.optimizers, state=self.finetune_strategy_state,
+            step=step - int(self.finetune_start or 0), info=packed_info, packed=True,
+        )
 
     def render_features(self, camera: Cameras, features: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Renders per-Gaussian features at full resolution with the geometry detached.
@@ -233,11 +391,16 @@ class SplatReplaceModel(SplatfactoModel):
         features = self.features_contrastive if features is None else features
         viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
         K = camera.get_intrinsics_matrices()[0].to(self.device)
+        means, quats, scales, opacities = self.means, self.quats, self.scales, self.opacities
+        if self.has_templates:  # the replaced scene; each rendered Gaussian carries its stored one's feature
+            scene = self.composed_scene()
+            means, quats, scales, opacities = scene.means, scene.quats, scene.log_scales, scene.logit_opacities
+            features = features[scene.param_index]
         out = rasterize(
-            self.means.detach(),
-            self.quats.detach(),
-            torch.exp(self.scales.detach()),
-            torch.sigmoid(self.opacities.detach()).squeeze(-1),
+            means.detach(),
+            quats.detach(),
+            torch.exp(scales.detach()),
+            torch.sigmoid(opacities.detach()).reshape(-1),
             features,
             viewmat,
             K,
@@ -247,10 +410,38 @@ class SplatReplaceModel(SplatfactoModel):
         )
         return out.image, out.alpha, out.depth
 
+    @torch.no_grad()
+    def render_instance_ids(self, camera: Cameras, min_alpha: float = 0.5) -> torch.Tensor:
+        """Instance id per pixel (0 = background) of one camera: the segmentation labels rendered as one-hot
+        features (after the templates are built, the instance each composed Gaussian belongs to).
+
+        Returns:
+            [H, W] long.
+        """
+        scene = self.composed_scene() if self.has_templates else None
+        labels = scene.instance_id if scene is not None else self.instance_labels.to(self.device)
+        ids = sorted(set(labels.unique().tolist()) - {0})
+        dense = torch.searchsorted(torch.tensor([0] + ids, device=labels.device), labels)  # 0..len(ids)
+        one_hot = torch.nn.functional.one_hot(dense, len(ids) + 1).float()
+        if scene is None:
+            image, alpha, _ = self.render_features(camera, one_hot)
+        else:
+            viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
+            K = camera.get_intrinsics_matrices()[0].to(self.device)
+            out = rasterize(scene.means, scene.quats, torch.exp(scene.log_scales),
+                            torch.sigmoid(scene.logit_opacities).reshape(-1), one_hot, viewmat, K,
+                            int(camera.width.item()), int(camera.height.item()),
+                            backend="gsplat" if self.uses_gsplat else "torch")
+            image, alpha = out.image, out.alpha
+        table = torch.tensor([0] + ids, dtype=torch.long, device=image.device)
+        winner = table[image.argmax(dim=-1)]
+        return torch.where(alpha[..., 0] >= min_alpha, winner, torch.zeros_like(winner))
+
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_param_groups()
         if self.config.use_exposure_correction:
             groups["exposure"] = [self.exposure]
+        groups["instance_poses"] = [self.instance_pose_delta]
         return groups
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
@@ -272,6 +463,10 @@ class SplatReplaceModel(SplatfactoModel):
         def crop(t: torch.Tensor) -> torch.Tensor:
             return t if keep is None else t[keep]
 
+        scene = self.composed_scene() if self.has_templates else None
+        if scene is not None:
+            keep = None if self.crop_box is None or self.training else self.crop_box.within(scene.means).squeeze()
+
         scale_factor = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / scale_factor)
         viewmat = get_viewmat(camera_to_world)[0]
@@ -280,21 +475,28 @@ class SplatReplaceModel(SplatfactoModel):
         self.last_size = (H, W)
         camera.rescale_output_resolution(scale_factor)
 
+        if scene is not None:
+            means, quats, log_scales, logit_opacities, sh = (
+                scene.means, scene.quats, scene.log_scales, scene.logit_opacities, scene.sh
+            )
+        else:
+            means, quats, log_scales, logit_opacities = self.means, self.quats, self.scales, self.opacities
+            sh = torch.cat((self.features_dc[:, None, :], self.features_rest), dim=1)
         if self.config.sh_degree > 0:
-            colors = torch.cat((crop(self.features_dc)[:, None, :], crop(self.features_rest)), dim=1)
+            colors = crop(sh)
             sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
         else:
-            colors = torch.sigmoid(crop(self.features_dc))
+            colors = torch.sigmoid(crop(sh[:, 0]))
             sh_degree = None
 
-        if not self.training and self.highlight is not None and self.highlight.shape[0] == self.num_points:
+        if scene is None and not self.training and self.highlight is not None and self.highlight.shape[0] == self.num_points:
             colors = self._tint(colors, crop(self.highlight.to(colors.device)), sh_degree is not None)
 
         out = rasterize(
-            crop(self.means),
-            crop(self.quats),
-            torch.exp(crop(self.scales)),
-            torch.sigmoid(crop(self.opacities)).squeeze(-1),
+            crop(means),
+            crop(quats),
+            torch.exp(crop(log_scales)),
+            torch.sigmoid(crop(logit_opacities)).reshape(-1),
             colors,
             viewmat,
             K,
@@ -313,9 +515,12 @@ class SplatReplaceModel(SplatfactoModel):
             "height": H,
             "n_cameras": 1,
             "gaussian_ids": None,
+            "param_index": None if scene is None else scene.param_index,
         }
-        if self.training:
+        if self.training and scene is None:
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+        elif self.training and out.means2d.requires_grad:
+            out.means2d.retain_grad()  # screen-space gradients for densifying the templates
 
         background = self._get_background_color()
         rgb = out.image[..., :3] + (1 - out.alpha) * background
@@ -341,6 +546,11 @@ class SplatReplaceModel(SplatfactoModel):
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.has_templates and self.config.offset_l1_lambda > 0:
+            classes = self.gauss_params["template_class"].detach()[:, 0].round().long()
+            loss_dict["sh_offset_l1"] = self.config.offset_l1_lambda * offsets_l1(
+                self.gauss_params["sh_offsets"], classes, self.instance_table.slots_per_class
+            )
         if self.config.opacity_l1_lambda > 0 or self.config.scale_l1_lambda > 0:
             opacity_l1, scale_l1 = base_regularisers(self.opacities, self.scales)
             loss_dict["opacity_l1"] = self.config.opacity_l1_lambda * opacity_l1
@@ -354,13 +564,24 @@ class SplatReplaceModel(SplatfactoModel):
     def get_image_metrics_and_images(
         self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        """PSNR and SSIM (``splatreplace_ns.eval.metrics``) on the full image and inside the union of the
+        view's ground-truth instance masks, and LPIPS when its weights are on disk.
+
+        Metrics that a view does not have are left out, never NaN: the masked ones when the dataset has no
+        masks or the view shows no instance, LPIPS without weights.
+        """
         gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
         predicted_rgb = outputs["rgb"]
         combined_rgb = torch.cat([gt_rgb, predicted_rgb], dim=1)
-        gt = torch.moveaxis(gt_rgb, -1, 0)[None]
-        pred = torch.moveaxis(predicted_rgb, -1, 0)[None]
-        metrics = {"psnr": float(self.psnr(gt, pred).item()), "ssim": float(self.ssim(gt, pred))}
-        lpips = self.lpips(gt, pred)
+        metrics = {"psnr": image_psnr(predicted_rgb, gt_rgb), "ssim": image_ssim(predicted_rgb, gt_rgb)}
+        if "instance_mask" in batch:
+            repeated = batch["instance_mask"][..., 0].to(predicted_rgb.device) > 0  # union of the instances
+            masked = {
+                "psnr_masked": image_psnr(predicted_rgb, gt_rgb, repeated),
+                "ssim_masked": image_ssim(predicted_rgb, gt_rgb, repeated),
+            }
+            metrics.update({k: v for k, v in masked.items() if v is not None})
+        lpips = self.lpips(torch.moveaxis(gt_rgb, -1, 0)[None], torch.moveaxis(predicted_rgb, -1, 0)[None])
         if lpips is not None:
             metrics["lpips"] = lpips
         return metrics, {"img": combined_rgb}

@@ -2,8 +2,11 @@
 
 Steps ``[0, base)`` train the base 3DGS* model; steps ``[base, base + contrastive)`` train the
 per-Gaussian contrastive features with the geometry frozen; right after the last contrastive step
-the instances are segmented from one click each (``clicks.json`` or the viewer) and leftover
-background Gaussians are removed by space carving (paper §4.1).
+the instances are segmented from one click each (``clicks.json`` or the viewer), leftover
+background Gaussians are removed by space carving (paper §4.1), every instance is registered to its
+class template (§4.2, through the datamanager's registration hook) and the shared templates are built
+(§4.3). The remaining ``finetune`` steps optimise the replaced scene: shared template Gaussians,
+per-instance SH offsets and poses, and the background.
 """
 
 from __future__ import annotations
@@ -25,12 +28,14 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
+from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig
 from splatreplace_ns.register.virtual_cameras import look_at
 from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.segment.clicks import Click, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import masks_from_rendered_features
+from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
 
 
@@ -59,12 +64,18 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     """Iterations of the base 3DGS* stage."""
     contrastive_iterations: int = 5000
     """Iterations of the contrastive-feature stage (paper: 5k; 1k is nearly as good). 0 skips segmentation."""
+    finetune_iterations: int = 7000
+    """Iterations of the shared-template fine-tuning stage (paper: 7k; 4k is nearly as good). 0 stops after
+    registration and leaves the scene un-replaced."""
     contrastive: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     @property
     def total_iterations(self) -> int:
-        return self.base_iterations + self.contrastive_iterations
+        if self.contrastive_iterations <= 0:  # no segmentation, nothing to replace
+            return self.base_iterations
+        return self.base_iterations + self.contrastive_iterations + self.finetune_iterations
 
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -77,21 +88,33 @@ class SplatReplacePipeline(VanillaPipeline):
         super().__init__(config, device, *args, **kwargs)
         self.selection: Optional[InstanceSelection] = None
         self.segmentation_report: Dict = {}
+        self.registration_report: Dict = {}
         self.instance_masks_2d: Optional[torch.Tensor] = None
         self.selection_controls = InstanceSelectionControls(self)
+
+    def load_pipeline(self, loaded_state: Dict, step: int) -> None:
+        super().load_pipeline(loaded_state, step)
+        if self.test_mode == "inference":  # ns-export / ns-render read plain Gaussians: give them the replaced scene
+            self.model.bake_replaced_scene()
 
     # ------------------------------------------------------------------ stages
     def stage_at(self, step: int) -> str:
         if step < self.config.base_iterations:
             return "base"
-        if step < self.config.total_iterations:
+        if step < self.config.base_iterations + self.config.contrastive_iterations:
             return "contrastive"
-        return "segmented"
+        return "finetune" if self.model.has_templates else "segmented"
 
     def get_train_loss_dict(self, step: int):
         stage = self.stage_at(step)
         if stage == "base":
             self.model.stage = "base"
+            return super().get_train_loss_dict(step)
+        if stage in ("finetune", "segmented"):  # the replaced scene (or the segmented one) against the images
+            if self.model.stage == "segmented" and self.config.finetune_iterations > 0 and not self.registration_report:
+                # first fine-tuning step (also after resuming from a checkpoint saved at the end of segmentation)
+                self.run_registration()
+                self.build_shared_templates(start_step=step)
             return super().get_train_loss_dict(step)
         if self.model.stage == "base":
             CONSOLE.log(f"[bold]step {step}: base stage done ({self.model.num_points} Gaussians); training contrastive features")
@@ -108,7 +131,8 @@ class SplatReplacePipeline(VanillaPipeline):
         return callbacks
 
     def _after_iteration(self, step: int) -> None:
-        if self.config.contrastive_iterations > 0 and step == self.config.total_iterations - 1:
+        last_contrastive = self.config.base_iterations + self.config.contrastive_iterations - 1
+        if self.config.contrastive_iterations > 0 and step == last_contrastive:
             self.run_segmentation()
 
     # ------------------------------------------------------------ segmentation
@@ -271,3 +295,138 @@ class SplatReplacePipeline(VanillaPipeline):
             f"instance Gaussians, {removed} background Gaussians carved"
         )
         return self.segmentation_report
+
+    # ------------------------------------------------------------ registration and shared templates
+    @torch.no_grad()
+    def instance_gaussians(self) -> Dict[int, InstanceGaussians]:
+        """The segmented instances as Gaussian sets (world frame, activated parameters)."""
+        model = self.model
+        labels = model.instance_labels.to(model.means.device)
+        sh = torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1).detach()
+        sh_degree = model.config.sh_degree if model.config.sh_degree > 0 else None
+        out = {}
+        for inst in model.instances:
+            sel = labels == int(inst["id"])
+            colors = sh[sel] if sh_degree is not None else torch.sigmoid(model.features_dc.detach()[sel])
+            out[int(inst["id"])] = InstanceGaussians(
+                means=model.means.detach()[sel], quats=model.quats.detach()[sel],
+                scales=torch.exp(model.scales.detach()[sel]), opacities=torch.sigmoid(model.opacities.detach()[sel]).reshape(-1),
+                colors=colors, sh_degree=sh_degree, id=int(inst["id"]),
+            )
+        return out
+
+    def run_registration(self) -> Dict[int, Dict]:
+        """Registers every segmented instance to its class template (paper §4.2); failures are reported by
+        name and those instances stay as they are."""
+        start = time.perf_counter()
+        model = self.model
+        instances = self.instance_gaussians()
+        classes = {int(i["id"]): i["class"] for i in model.instances}
+        CONSOLE.log(f"[bold]registration: {len(instances)} instances in {len(set(classes.values()))} classes")
+        results = self.datamanager.register_instances(instances, classes, self.config.registration)
+        model.registration = {
+            iid: {
+                "template": int(r.template_id), "transform": np.asarray(r.transform).tolist(), "success": bool(r.success),
+                "inliers": int(r.num_inliers), "fitness": float(r.fitness), "message": r.message, "time_s": float(r.time_s),
+            }
+            for iid, r in results.items()
+        }
+        for iid, r in results.items():
+            colour = "" if r.success else "[bold yellow]"
+            CONSOLE.log(f"{colour}{r.message} ({r.time_s:.1f} s)")
+        self.registration_report = {"time_s": time.perf_counter() - start, "failures": [i for i, r in results.items() if not r.success]}
+        return model.registration
+
+    @torch.no_grad()
+    def build_shared_templates(self, start_step: int) -> None:
+        """Replaces every registered instance by a reference to its class template (paper §4.3)."""
+        model = self.model
+        classes = {int(i["id"]): i["class"] for i in model.instances}
+        transforms = {
+            iid: torch.tensor(r["transform"], dtype=torch.float32) for iid, r in model.registration.items() if r["success"]
+        }
+        # template space of a class = the world frame of the instance its registrations map onto
+        templates = {classes[iid]: int(r["template"]) for iid, r in model.registration.items() if r["success"]}
+        params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
+        new_params, table = build_templates(
+            params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
+            merge=model.config.template_union == "merge",
+        )
+        if len(table.ids) == 0:
+            CONSOLE.log("[bold yellow]no registered instance: the scene is not replaced; fine-tuning the segmented scene")
+            return
+        model.base_gaussians = model.num_points
+        self._swap_parameters(new_params, torch.zeros(len(table.ids), 6, device=model.means.device))
+        model.instance_table = table
+        model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)  # per stored Gaussian; see template_class
+        model.stage = "finetune"
+        model.finetune_start = start_step
+        model.finetune_strategy, model.finetune_strategy_state = self._finetune_strategy()
+        for name in table.kept_in_background:
+            CONSOLE.log(f"[bold yellow]instance {name} was not registered and stays as it is (not replaced)")
+        CONSOLE.log(
+            f"[bold]shared templates: {len(table.classes)} classes, {len(table.ids)} instances, "
+            f"{model.num_points} stored Gaussians; fine-tuning for {self.config.finetune_iterations} steps"
+        )
+
+    def _finetune_strategy(self):
+        """Densification for the templates: no opacity reset (the scene is already trained), refinement
+        during the first half of fine-tuning."""
+        from dataclasses import replace as dc_replace
+
+        model = self.model
+        if not model.config.finetune_densify:
+            return None, {}
+        every = min(model.config.refine_every, max(self.config.finetune_iterations // 4, 1))
+        strategy = dc_replace(
+            model.strategy,
+            refine_every=every,
+            refine_start_iter=every,
+            refine_stop_iter=max(self.config.finetune_iterations // 2, 2 * every + 1),
+            reset_every=10**9,
+            pause_refine_after_reset=0,
+            absgrad=False,
+            grow_grad2d=model.config.grad_thresh_without_absgrad,
+        )
+        return strategy, strategy.initialize_state(scene_scale=1.0)
+
+    def _swap_parameters(self, params: Dict[str, torch.Tensor], pose_delta: torch.Tensor) -> None:
+        """Installs new per-Gaussian tensors (any count) and pose parameters, resetting their optimizer state."""
+        model = self.model
+        optimizers = getattr(model, "optimizers", None) or {}
+        for name, value in params.items():
+            old = model.gauss_params[name]
+            new = torch.nn.Parameter(value.detach().clone().to(old.device))
+            model.gauss_params[name] = new
+            self._rebind_optimizer(optimizers.get(name), new)
+        model.instance_pose_delta = torch.nn.Parameter(pose_delta)
+        self._rebind_optimizer(optimizers.get("instance_poses"), model.instance_pose_delta)
+
+    @staticmethod
+    def _rebind_optimizer(optimizer, param: torch.nn.Parameter) -> None:
+        if optimizer is None:
+            return
+        for group in optimizer.param_groups:
+            for old in group["params"]:
+                optimizer.state.pop(old, None)
+            group["params"] = [param]
+
+    # ------------------------------------------------------------ evaluation
+    def get_average_eval_image_metrics(
+        self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
+    ) -> Dict:
+        """nerfstudio's averages over the eval views plus the masked PSNR/SSIM; outside training (``ns-eval``,
+        ``step=None``) also KID, the versions, segmentation and registration scores and ``unavailable``
+        (metric → reason), see ``splatreplace_ns.eval.report``.
+
+        During training (``step`` given) only numbers are returned: the Trainer logs every entry as a scalar.
+        """
+        from splatreplace_ns.eval.report import EvalViewRecorder, evaluation_report, json_safe
+
+        with EvalViewRecorder(self.model, with_kid=step is None) as recorder:
+            metrics = super().get_average_eval_image_metrics(step, output_path, get_std)
+        metrics.update(recorder.masked_averages(get_std))
+        if step is not None:
+            return metrics
+        metrics.update(evaluation_report(self, recorder))
+        return json_safe(metrics)

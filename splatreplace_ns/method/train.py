@@ -15,14 +15,15 @@ def make_trainer_config(
     output_dir: Path,
     base_iterations: int,
     contrastive_iterations: int = 0,
+    finetune_iterations: int = 0,
     *,
     experiment_name: Optional[str] = None,
     steps_per_save: Optional[int] = None,
     progress: bool = False,
 ) -> TrainerConfig:
     """splat-replace's TrainerConfig set up for an unattended run (no viewer, no evaluation mid-run)."""
-    config = splat_replace_trainer_config(base_iterations, contrastive_iterations)
-    max_num_iterations = base_iterations + contrastive_iterations
+    config = splat_replace_trainer_config(base_iterations, contrastive_iterations, finetune_iterations)
+    max_num_iterations = config.pipeline.total_iterations
     config.pipeline.datamanager.data = Path(data)
     config.output_dir = Path(output_dir)
     config.experiment_name = experiment_name or Path(data).name

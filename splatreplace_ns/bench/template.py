@@ -1,0 +1,215 @@
+"""``splatreplace bench template``: the shared template against the 3DGS* baseline (paper Table 1 and its ablation).
+
+On one synthetic preset, with the same total number of iterations for both:
+
+* ``ours`` — base → contrastive → segmentation (clicks.json) → registration → shared templates → fine-tuning;
+* ``baseline`` — 3DGS* only (``base + contrastive + finetune`` base iterations);
+* ablations, each resumed from ours' checkpoint at the end of segmentation (so they share base, features and
+  segmentation and differ only after it): ``shared_only`` (λ = 1, no offsets), ``offsets_only`` (λ = 0, no
+  shared colour), ``no_pose_refinement`` (instance poses frozen at the registration result).
+
+Test-view PSNR/SSIM on full images and on the masked repeated regions (union of the ground-truth instance
+masks), wall time of every run, and the export sizes of ours.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import torch
+
+ABLATIONS = ("shared_only", "offsets_only", "no_pose_refinement")
+METRICS = ("psnr", "psnr_masked", "ssim", "ssim_masked")
+
+
+@dataclass
+class BenchTemplateConfig:
+    """Masked and full-image PSNR/SSIM of the replaced scene vs the 3DGS* baseline, with ablations."""
+
+    preset: str = "office"
+    """Synthetic preset (office, temple, chess, ...)."""
+    json: Optional[Path] = None
+    """Where to write the results as JSON."""
+    res: str = "160x120"
+    """Scene resolution WxH."""
+    n_train: int = 60
+    """Training views."""
+    n_test: int = 12
+    """Test views."""
+    base_iterations: int = 3000
+    """Base 3DGS* iterations of ours (the baseline gets base + contrastive + finetune)."""
+    contrastive_iterations: int = 1000
+    """Contrastive iterations (paper: 1k is nearly as good as 5k)."""
+    finetune_iterations: int = 2000
+    """Shared-template fine-tuning iterations."""
+    ablations: Tuple[str, ...] = ABLATIONS
+    """Ablations to run (each costs one fine-tuning run): shared_only, offsets_only, no_pose_refinement."""
+    data_root: Path = Path("benchmarks/data")
+    """Generated scenes are kept here and reused."""
+    out_dir: Path = Path("benchmarks/runs")
+    """Training outputs."""
+    threads: int = 2
+    """torch CPU threads."""
+
+    def main(self) -> Dict:
+        result = run_template_bench(self)
+        print_table(result)
+        if self.json is not None:
+            self.json.parent.mkdir(parents=True, exist_ok=True)
+            self.json.write_text(json.dumps(result, indent=2) + "\n")
+            print(f"wrote {self.json}")
+        return result
+
+
+def scene_path(preset: str, res: str, n_train: int, n_test: int, root: Path) -> Path:
+    """A sim scene in ``root`` (made once, then reused)."""
+    from splatreplace_ns.sim import make_scene
+
+    data = root / f"{preset}_{res}_{n_train}_{n_test}"
+    if not (data / "transforms.json").exists():
+        make_scene(preset, data, res=res, seed=0, n_train=n_train, n_test=n_test)
+    return data
+
+
+def test_metrics(pipeline) -> Dict[str, float]:
+    """Average test-view metrics (what ``ns-eval`` reports), restricted to the table's figures."""
+    pipeline.eval()
+    metrics = pipeline.get_average_eval_image_metrics()
+    return {k: (float(metrics[k]) if metrics.get(k) is not None else None) for k in METRICS}
+
+
+def _run(config) -> Tuple[object, float]:
+    from splatreplace_ns.method.train import run_training
+
+    start = time.perf_counter()
+    trainer = run_training(config)
+    return trainer, time.perf_counter() - start
+
+
+def train_ours_and_baseline(data: Path, out: Path, B: int, C: int, F: int, resumable: bool = False) -> Dict:
+    """Trains the whole method and the 3DGS* baseline with the same total iterations and scores both.
+
+    Args:
+        data: dataset folder; out: runs folder; B, C, F: base, contrastive and fine-tuning iterations of ours
+            (the baseline trains B + C + F base iterations).
+        resumable: also keep ours' checkpoint at the end of segmentation (for ablations to resume from).
+    Returns:
+        {"ours", "baseline": metrics, "ours_trainer", "baseline_trainer", "ours_config", "times", "sizes",
+         "registration"}.
+    """
+    from splatreplace_ns.method.train import make_trainer_config
+    from splatreplace_ns.template.export import instanced_arrays, ply_bytes, save_instanced
+
+    times: Dict[str, float] = {}
+    ours_cfg = make_trainer_config(data, out, B, C, F, experiment_name="ours",
+                                   steps_per_save=B + C - 1 if resumable else None, progress=True)
+    ours_cfg.save_only_latest_checkpoint = not resumable
+    ours_trainer, times["ours"] = _run(ours_cfg)
+    pipeline = ours_trainer.pipeline
+    ours = test_metrics(pipeline)
+    model = pipeline.model
+    times["segmentation"] = float(pipeline.segmentation_report.get("time_s", float("nan")))
+    times["registration"] = float(pipeline.registration_report.get("time_s", float("nan")))
+    sh_coeffs = model.features_rest.shape[1] + 1
+    sizes: Dict[str, object] = {}
+    if model.has_templates:
+        instanced = ours_cfg.get_base_dir() / "export" / "instanced.npz"
+        sizes["instanced_bytes"] = save_instanced(instanced, instanced_arrays(model))
+        sizes["instanced_path"] = str(instanced)
+        composed = len(model.composed_scene().means)
+        sizes.update(ours_ply_bytes=ply_bytes(composed, sh_coeffs), ours_gaussians_rendered=composed,
+                     ours_gaussians_stored=model.num_points)
+    registration = {int(k): {"success": v["success"], "message": v["message"]} for k, v in model.registration.items()}
+
+    baseline_cfg = make_trainer_config(data, out, B + C + F, experiment_name="baseline", progress=True)
+    baseline_trainer, times["baseline"] = _run(baseline_cfg)
+    baseline = test_metrics(baseline_trainer.pipeline)
+    n_base = baseline_trainer.pipeline.model.num_points
+    sizes.update(baseline_ply_bytes=ply_bytes(n_base, sh_coeffs), baseline_gaussians=n_base)
+    return {"ours": ours, "baseline": baseline, "ours_trainer": ours_trainer, "baseline_trainer": baseline_trainer,
+            "ours_config": ours_cfg, "times": times, "sizes": sizes, "registration": registration}
+
+
+def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
+    from splatreplace_ns.method.train import make_trainer_config
+
+    unknown = sorted(set(cfg.ablations) - set(ABLATIONS))
+    if unknown:
+        raise ValueError(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS)}")
+    torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
+    t0 = time.perf_counter()
+    data = scene_path(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
+    out = cfg.out_dir / f"template_{cfg.preset}"
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    sim_s = time.perf_counter() - t0
+    pair = train_ours_and_baseline(data, out, B, C, F, resumable=bool(cfg.ablations))
+    ours, baseline, sizes, registration = pair["ours"], pair["baseline"], pair["sizes"], pair["registration"]
+    times = {"sim": sim_s, **pair["times"]}
+    checkpoint_dir = pair["ours_config"].get_checkpoint_dir()
+    del pair
+
+    ablations: Dict[str, Dict] = {}
+    for name in cfg.ablations:
+        ab_cfg = make_trainer_config(data, out, B, C, F, experiment_name=f"ablation_{name}", progress=True)
+        ab_cfg.load_dir = checkpoint_dir
+        ab_cfg.load_step = B + C - 1
+        if name == "shared_only":
+            ab_cfg.pipeline.model.template_mix = 1.0
+        elif name == "offsets_only":
+            ab_cfg.pipeline.model.template_mix = 0.0
+        elif name == "no_pose_refinement":
+            ab_cfg.optimizers["instance_poses"]["optimizer"].lr = 0.0
+        trainer, seconds = _run(ab_cfg)
+        ablations[name] = {**test_metrics(trainer.pipeline), "time_s": seconds}
+        del trainer
+
+    import nerfstudio  # noqa: F401
+
+    return {
+        "benchmark": "template",
+        "preset": cfg.preset,
+        "baseline": baseline,
+        "ours": ours,
+        "gain": {k: (ours[k] - baseline[k]) if ours[k] is not None and baseline[k] is not None else None for k in METRICS},
+        "ablations": ablations,
+        "sizes": sizes,
+        "registration": registration,
+        "time_s": {**times, "total": time.perf_counter() - t0},
+        "parameters": {"res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": B,
+                       "contrastive_iterations": C, "finetune_iterations": F, "baseline_iterations": B + C + F},
+        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
+                    "threads": torch.get_num_threads()},
+    }
+
+
+def print_table(result: Dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"shared template on '{result['preset']}' (test views, same total iterations)")
+    for col in ("run", "PSNR", "PSNR masked", "SSIM", "SSIM masked", "time (s)"):
+        table.add_column(col)
+
+    def fmt(v, digits):
+        return "n/a" if v is None else f"{v:.{digits}f}"
+
+    rows: List = [("baseline 3DGS*", result["baseline"], result["time_s"]["baseline"]),
+                  ("ours", result["ours"], result["time_s"]["ours"])]
+    rows += [(f"ablation: {k}", v, v["time_s"]) for k, v in result["ablations"].items()]
+    for name, m, seconds in rows:
+        table.add_row(name, fmt(m["psnr"], 2), fmt(m["psnr_masked"], 2), fmt(m["ssim"], 4), fmt(m["ssim_masked"], 4),
+                      f"{seconds:.0f}")
+    Console().print(table)
+    sizes = result["sizes"]
+    if "instanced_bytes" in sizes:
+        Console().print(
+            f"sizes: baseline PLY {sizes['baseline_ply_bytes'] / 1e6:.2f} MB ({sizes['baseline_gaussians']} Gaussians), "
+            f"ours PLY {sizes['ours_ply_bytes'] / 1e6:.2f} MB, instanced {sizes['instanced_bytes'] / 1e6:.2f} MB "
+            f"({sizes['ours_gaussians_stored']} stored Gaussians)"
+        )

@@ -1,0 +1,166 @@
+"""The whole splat-replace run on the tiny scene: segmentation → registration hook → shared templates →
+fine-tuning, then reloading the checkpoint the way ``ns-eval`` does.
+
+Registration itself is tested in test_register_*.py; here the hook returns the ground-truth transforms so
+that the template stage is exercised on known poses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.train import make_trainer_config, run_training
+from splatreplace_ns.register.pipeline import RegistrationResult, choose_templates
+from splatreplace_ns.sim import make_scene
+
+FINETUNE = 120
+
+
+def ground_truth_registration(self, instances, classes, config):
+    """Stands in for the registration hook: T = P_template · P_instance⁻¹ from the parsed GT poses."""
+    poses = {int(i["id"]): i["transform_matrix"].double().numpy() for i in self.train_dataparser_outputs.metadata["instances"]}
+    by_class = {}
+    for iid in instances:
+        by_class.setdefault(classes[iid], []).append(iid)
+    templates = choose_templates(by_class, {i: g.num_gaussians for i, g in instances.items()})
+    out = {}
+    for iid in instances:
+        tid = templates[classes[iid]]
+        T = poses[tid] @ np.linalg.inv(poses[iid])  # similarity parts cancel: rigid
+        out[iid] = RegistrationResult(iid, tid, T, True, 0, 1.0, f"instance {iid}: ground truth")
+    return out
+
+
+@pytest.fixture(scope="module")
+def replaced(tmp_path_factory):
+    data = tmp_path_factory.mktemp("tiny") / "tiny"
+    make_scene("tiny", data, n_train=12)
+    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, 250, FINETUNE)
+    config.pipeline.model.warmup_length = 100
+    config.pipeline.datamanager.contrastive_uniform_samples = 1024
+    config.pipeline.datamanager.contrastive_mask_samples = 512
+    patch = pytest.MonkeyPatch()
+    patch.setattr(SplatReplaceDataManager, "register_instances", ground_truth_registration)
+    try:
+        trainer = run_training(config)
+    finally:
+        patch.undo()
+    return data, config, trainer
+
+
+def test_instances_are_replaced_by_one_shared_template(replaced):
+    _, config, trainer = replaced
+    pipeline = trainer.pipeline
+    model = pipeline.model
+    assert model.stage == "finetune"
+    table = model.instance_table
+    assert sorted(table.ids.tolist()) == [1, 2, 3] and table.classes == ["crate"]
+    assert sorted(table.slot.tolist()) == [0, 1, 2]
+    classes = model.gauss_params["template_class"][:, 0].round().long()
+    n_template = int((classes == 1).sum())
+    assert n_template > 30
+    scene = model.composed_scene()
+    # each crate renders the whole template: background + 3 copies
+    assert len(scene.means) == int((classes == 0).sum()) + 3 * n_template
+    # fine-tuning moved the per-instance offsets and poses away from their initial values
+    assert model.gauss_params["sh_offsets"].abs().sum() > 0
+    assert model.instance_pose_delta.abs().sum() > 0
+    assert torch.isfinite(model.instance_pose_delta).all()
+    # the instances' copies of the template lie where the crates are (within the crate's size)
+    poses = {int(i["id"]): i["transform_matrix"] for i in pipeline.datamanager.train_dataparser_outputs.metadata["instances"]}
+    for iid in (1, 2, 3):
+        centre = scene.means[scene.instance_id == iid].detach().median(dim=0).values
+        scale = poses[iid][:3, :3].norm(dim=0).mean()
+        assert (centre - poses[iid][:3, 3]).norm() < 1.0 * scale, iid
+
+
+def test_replaced_scene_renders_and_survives_the_checkpoint(replaced, tmp_path):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, config, trainer = replaced
+    pipeline = trainer.pipeline
+    pipeline.eval()
+    camera = pipeline.datamanager.eval_dataset.cameras[0:1].to(pipeline.device)
+    with torch.no_grad():
+        before = pipeline.model.get_outputs(camera)["rgb"]
+    assert torch.isfinite(before).all()
+    metrics = pipeline.get_average_eval_image_metrics()
+    assert np.isfinite(metrics["psnr"]) and metrics["psnr"] > 12
+
+    _, loaded, _, _ = eval_setup(config.get_base_dir() / "config.yml", test_mode="test")
+    assert loaded.model.stage == "finetune"
+    loaded.model.step = pipeline.model.step  # the SH degree in use follows the step
+    with torch.no_grad():
+        after = loaded.model.get_outputs(camera.to(loaded.device))["rgb"]
+    assert torch.allclose(before, after, atol=1e-5)
+
+
+def test_export_ply_and_instanced_file_render_the_replaced_scene(replaced, tmp_path):
+    from plyfile import PlyData
+
+    from splatreplace_ns.export import ExportCommand
+    from splatreplace_ns.render import rasterize
+    from splatreplace_ns.template.export import load_instanced
+    from nerfstudio.models.splatfacto import get_viewmat
+
+    _, config, trainer = replaced
+    model = trainer.pipeline.model
+    model.eval()
+    rows = ExportCommand(config.get_base_dir() / "config.yml", tmp_path).main()
+    assert [r["gaussians"] for r in rows][-1] == model.num_points
+    camera = trainer.pipeline.datamanager.eval_dataset.cameras[0:1]
+    viewmat = get_viewmat(camera.camera_to_worlds)[0]
+    K = camera.get_intrinsics_matrices()[0]
+    W, H = int(camera.width), int(camera.height)
+
+    def render(means, quats, log_scales, logit_opac, sh):
+        return rasterize(means, quats, torch.exp(log_scales), torch.sigmoid(logit_opac).reshape(-1), sh, viewmat, K,
+                         W, H, sh_degree=3, backend="torch").image
+
+    with torch.no_grad():
+        scene = model.composed_scene()
+        expected = render(scene.means, scene.quats, scene.log_scales, scene.logit_opacities, scene.sh)
+
+    # standard 3DGS PLY, read back with plyfile
+    ply = PlyData.read(str(tmp_path / "splat.ply"))["vertex"]
+    n = ply.count
+    assert n == len(scene.means)
+
+    def cols(*names):
+        return torch.tensor(np.stack([np.asarray(ply[name]) for name in names], axis=-1), dtype=torch.float32)
+
+    rest_names = sorted((p.name for p in ply.properties if p.name.startswith("f_rest_")), key=lambda s: int(s[7:]))
+    rest = cols(*rest_names).reshape(n, 3, -1).transpose(1, 2)  # channel-major in the file
+    sh = torch.cat((cols("f_dc_0", "f_dc_1", "f_dc_2")[:, None], rest), dim=1)
+    from_ply = render(cols("x", "y", "z"), cols("rot_0", "rot_1", "rot_2", "rot_3"), cols("scale_0", "scale_1", "scale_2"),
+                      cols("opacity"), sh)
+    assert torch.allclose(from_ply, expected, atol=2e-3)
+
+    # compact instanced file, loaded and composed
+    inst = load_instanced(tmp_path / "instanced.npz")
+    composed = inst.compose()
+    from_npz = render(composed.means, composed.quats, composed.log_scales, composed.logit_opacities, composed.sh)
+    assert (from_npz - expected).abs().max() < 5e-3  # offsets are stored as float16
+    assert (tmp_path / "instanced.npz").stat().st_size < (tmp_path / "splat.ply").stat().st_size
+
+    with pytest.raises(ValueError, match="not an instanced file"):
+        (tmp_path / "bad.npz").write_bytes(b"not a zip")
+        load_instanced(tmp_path / "bad.npz")
+
+
+def test_rendered_instance_ids_follow_the_replaced_instances(replaced):
+    _, _, trainer = replaced
+    pipeline = trainer.pipeline
+    dataset = pipeline.datamanager.eval_dataset
+    ious = []
+    for idx in range(len(dataset)):
+        gt = dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0].long()
+        ours = pipeline.model.render_instance_ids(dataset.cameras[idx : idx + 1].to(pipeline.device)).cpu()
+        for iid in (1, 2, 3):
+            a, b = ours == iid, gt == iid
+            if b.sum() > 20:
+                ious.append(float((a & b).sum()) / float((a | b).sum()))
+    assert ious and float(np.mean(ious)) > 0.6, ious
