@@ -1,0 +1,251 @@
+"""What ``ns-eval`` reports for splat-replace beyond nerfstudio's per-view averages.
+
+nerfstudio's ``VanillaPipeline.get_average_image_metrics`` averages, over the eval views, the keys of the
+*first* view's metrics and needs a number for every view. Masked metrics are not available in views
+without an instance (empty mask), and KID is a metric of the whole set of views, so both are collected
+here while nerfstudio's loop runs (:class:`EvalViewRecorder`) and averaged over the views that have them.
+
+:func:`evaluation_report` adds what a reader of the JSON needs to trust the figures: the versions that
+produced them, segmentation mIoU/mAcc and registration errors when the dataset carries ground truth, and
+for every metric left out the reason (``unavailable``). Everything it returns is JSON-safe: no tensors,
+no NaN or infinity (``None`` instead), string keys.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import re
+import subprocess
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from splatreplace_ns.eval.perceptual import LocalKID
+
+MASKED_KEYS = ("psnr_masked", "ssim_masked")
+"""Per-view metrics that a view may not have (no ground-truth instance in it)."""
+
+
+class EvalViewRecorder:
+    """Wraps ``model.get_image_metrics_and_images`` for the duration of nerfstudio's eval loop.
+
+    Keeps every view's metrics, hands nerfstudio only the metrics that every view has (its averaging needs
+    that), and feeds the ground-truth and rendered images to KID when ``with_kid`` and its weights exist.
+    """
+
+    def __init__(self, model, with_kid: bool = False) -> None:
+        self.model = model
+        self.views: List[Dict[str, float]] = []
+        self.kid: Optional[LocalKID] = LocalKID() if with_kid else None
+
+    def __enter__(self) -> "EvalViewRecorder":
+        original = self.model.get_image_metrics_and_images
+
+        def record(outputs, batch):
+            metrics, images = original(outputs, batch)
+            self.views.append(dict(metrics))
+            if self.kid is not None and self.kid.available:
+                gt = self.model.composite_with_background(self.model.get_gt_img(batch["image"]), outputs["background"])
+                self.kid.update(gt.permute(2, 0, 1)[None], outputs["rgb"].permute(2, 0, 1)[None])
+            return {k: v for k, v in metrics.items() if k not in MASKED_KEYS}, images
+
+        # an instance attribute shadows the method; deleting it in __exit__ restores the method
+        self.model.get_image_metrics_and_images = record
+        return self
+
+    def __exit__(self, *exc) -> None:
+        del self.model.get_image_metrics_and_images
+
+    def masked_averages(self, get_std: bool = False) -> Dict[str, float]:
+        """Mean (and, with ``get_std``, std like nerfstudio's) of each masked metric over the views that have it,
+        plus ``masked_views``: how many views had a non-empty mask."""
+        out: Dict[str, float] = {}
+        for key in MASKED_KEYS:
+            values = [v[key] for v in self.views if v.get(key) is not None]
+            if not values:
+                continue
+            std, mean = torch.std_mean(torch.tensor(values, dtype=torch.float64))
+            out[key] = float(mean)
+            if get_std:
+                out[f"{key}_std"] = float(std)
+        if out:
+            out["masked_views"] = sum(1 for v in self.views if v.get(MASKED_KEYS[0]) is not None)
+        return out
+
+
+def versions() -> Dict[str, Optional[str]]:
+    """Versions of what produced the figures (and the git commit of splatreplace_ns when it is a checkout)."""
+    import gsplat
+    import nerfstudio  # noqa: F401  (its metadata is what we read)
+    from importlib.metadata import PackageNotFoundError, version
+
+    import splatreplace_ns
+
+    def dist_version(name: str) -> Optional[str]:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return None
+
+    package_dir = Path(splatreplace_ns.__file__).resolve().parent
+    try:
+        commit = subprocess.run(
+            ["git", "describe", "--always", "--dirty", "--abbrev=12"], cwd=package_dir, capture_output=True,
+            text=True, timeout=10,
+        )
+        git = commit.stdout.strip() if commit.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        git = None
+    return {
+        "splatreplace_ns": splatreplace_ns.__version__,
+        "splatreplace_ns_git": git,
+        "nerfstudio": dist_version("nerfstudio"),
+        "torch": torch.__version__,
+        "gsplat": getattr(gsplat, "__version__", None) or dist_version("gsplat"),
+        "python": platform.python_version(),
+    }
+
+
+def segmentation_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
+    """mIoU/mAcc of the model's segmentation on the eval views, or (None, why not)."""
+    from splatreplace_ns.eval.segmentation import score_views_from_clicks
+
+    model = pipeline.model
+    if not getattr(model, "instances", None):
+        return None, "the model carries no segmentation (no instances were selected)"
+    dataset = pipeline.datamanager.eval_dataset
+    if getattr(dataset, "instance_mask_filenames", None) is None:
+        return None, "the eval views have no ground-truth instance masks"
+    if getattr(model, "has_templates", False):
+        return None, (
+            "the scene has been replaced by shared templates, whose rendered features no longer separate the "
+            "instances; segmentation is scored on the segmented model (before registration)"
+        )
+    clicks = pipeline.clicks_path()
+    if not clicks.exists():
+        return None, f"{clicks} not found: the click queries are needed to render the instance masks"
+    scores = score_views_from_clicks(pipeline, clicks, dataset)
+    return {
+        "miou": scores["miou"],
+        "macc": scores["macc"],
+        "iou": scores["iou"],
+        "acc": scores["acc"],
+        "click_failures": scores["failures"],
+        "views": len(dataset),
+        "definition": "test-view masks = rendered features within tau of the click queries (bench segment)",
+    }, None
+
+
+_CLICK_SOURCE = re.compile(r"^click (\d+) \(")
+
+
+def instance_gt_ids(pipeline) -> Tuple[Dict[int, int], Optional[str]]:
+    """Ground-truth id of each of the model's instances, through the click it came from.
+
+    An instance selected from ``clicks.json`` records its click as ``source = "click <index> (...)"``;
+    the click's ground-truth id is ``eval.segmentation.click_gt_ids``. Instances selected otherwise (the
+    viewer) have no ground-truth id.
+    """
+    from splatreplace_ns.eval.segmentation import click_gt_ids
+
+    clicks = pipeline.clicks_path()
+    if not clicks.exists():
+        return {}, f"{clicks} not found: the instances cannot be matched to ground-truth ids"
+    by_click = click_gt_ids(pipeline, clicks)
+    mapping = {}
+    for inst in pipeline.model.instances:
+        match = _CLICK_SOURCE.match(str(inst.get("source", "")))
+        if match and int(match.group(1)) in by_click and by_click[int(match.group(1))] > 0:
+            mapping[int(inst["id"])] = by_click[int(match.group(1))]
+    unmatched = [int(i["id"]) for i in pipeline.model.instances if int(i["id"]) not in mapping]
+    return mapping, (f"instances {unmatched} were not selected from {clicks}" if unmatched else None)
+
+
+def object_size(cls: str, pose: np.ndarray) -> Optional[float]:
+    """Bounding-box diagonal of a simulator class's mesh in the frame of ``pose`` (its scale applied);
+    None for classes the simulator does not know."""
+    from splatreplace_ns.eval.registration import split_similarity
+    from splatreplace_ns.sim import CLASSES, class_mesh
+
+    if cls not in CLASSES:
+        return None
+    mesh = class_mesh(cls)
+    return float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound())) * split_similarity(pose)[2]
+
+
+def registration_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
+    """Registration errors of ``model.registration`` against the dataset's ground-truth poses, or (None, why not).
+
+    Ground-truth poses are the dataparser's, already in the normalised world frame of the model.
+    """
+    from splatreplace_ns.eval.registration import registration_errors
+
+    registration = getattr(pipeline.model, "registration", None)
+    if not registration:
+        return None, "the model carries no registration"
+    instances = pipeline.datamanager.train_dataparser_outputs.metadata.get("instances") or []
+    posed = {int(i["id"]): i for i in instances if "transform_matrix" in i}
+    if not posed:
+        return None, "the dataset gives no ground-truth object poses (instances[].transform_matrix)"
+    model_to_gt, note = instance_gt_ids(pipeline)
+    if not model_to_gt:
+        return None, note
+    poses = {k: np.asarray(i["transform_matrix"], dtype=np.float64) for k, i in posed.items()}
+    symmetries = {k: str(i.get("symmetry", "none")) for k, i in posed.items()}
+    sizes = {k: object_size(str(i.get("class", "")), poses[k]) for k, i in posed.items()}
+    report = registration_errors(registration, model_to_gt, poses, symmetries, sizes)
+    unknown = sorted({str(posed[k].get("class")) for k, s in sizes.items() if s is None})
+    notes = [n for n in (note, f"no object size for classes {unknown}: translation errors omitted" if unknown else None) if n]
+    if notes:
+        report["notes"] = notes
+    return report, None
+
+
+def json_safe(value: Any) -> Any:
+    """Tensors, numpy values and tuples → plain JSON values; NaN/±inf → None; dict keys → str."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, torch.Tensor):
+        return json_safe(value.item() if value.numel() == 1 else value.tolist())
+    if isinstance(value, np.generic):
+        return json_safe(value.item())
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def evaluation_report(pipeline, recorder: EvalViewRecorder) -> Dict:
+    """Versions, KID, segmentation, registration and the ``unavailable`` reasons (JSON-safe)."""
+    model = pipeline.model
+    unavailable: Dict[str, str] = {}
+    report: Dict[str, Any] = {"versions": versions()}
+
+    lpips = getattr(model, "lpips", None)
+    if lpips is None or not lpips.available:
+        unavailable["lpips"] = getattr(lpips, "unavailable_reason", None) or "the model has no LPIPS metric"
+    kid = recorder.kid
+    result = kid.compute() if kid is not None else None
+    if result is not None:
+        report["kid"], report["kid_std"] = result
+    else:
+        unavailable["kid"] = (kid.unavailable_reason if kid is not None else None) or "KID was not computed"
+    if not any(v.get(MASKED_KEYS[0]) is not None for v in recorder.views):
+        has_masks = getattr(pipeline.datamanager.eval_dataset, "instance_mask_filenames", None) is not None
+        reason = "no eval view contains a ground-truth instance" if has_masks else "the eval views have no ground-truth instance masks"
+        unavailable.update({key: reason for key in MASKED_KEYS})
+
+    for name, make in (("segmentation", segmentation_report), ("registration", registration_report)):
+        section, reason = make(pipeline)
+        if section is None:
+            unavailable[name] = reason
+        else:
+            report[name] = section
+    report["unavailable"] = unavailable
+    return json_safe(report)
