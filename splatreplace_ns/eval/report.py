@@ -79,7 +79,6 @@ class EvalViewRecorder:
 def versions() -> Dict[str, Optional[str]]:
     """Versions of what produced the figures (and the git commit of splatreplace_ns when it is a checkout)."""
     import gsplat
-    import nerfstudio  # noqa: F401  (its metadata is what we read)
     from importlib.metadata import PackageNotFoundError, version
 
     import splatreplace_ns
