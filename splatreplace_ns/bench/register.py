@@ -481,6 +481,7 @@ def run_row(
         "rot_err_deg_max": float(rot.max()) if len(rot) else nan,
         "trans_err_rel_mean": float(trans.mean()) if len(trans) else nan,
         "trans_err_rel_max": float(trans.max()) if len(trans) else nan,
+        "rot_err_over_5deg": int((rot > 5.0).sum()),
         "failures": sum(not e["success"] for e in per_instance),
         "unscored": sum(e["success"] and not math.isfinite(e["rot_err_deg"]) for e in per_instance),
         "n_sources": len(per_instance),
@@ -625,19 +626,21 @@ def print_table(result: Dict) -> None:
     def fmt(value, scale=1.0, digits=3):
         return "—" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
 
+    console = Console(width=max(120, Console().width))  # not squeezed to 80 columns when piped to a log
     tables = [("rows", "instances from ground-truth masks")]
     if "rows_segmentation" in result:
         tables.append(("rows_segmentation", "instances from the segmentation stage"))
     for key, title in tables:
         table = Table(title=f"registration on '{result['preset']}': {title}")
         table.add_column("method", no_wrap=True)
-        for col in ("rot mean (°)", "rot max (°)", "trans mean (% diag)", "failures", "s/instance"):
+        for col in ("rot mean (°)", "rot median (°)", "rot max (°)", "trans mean (% diag)", "failures", "s/instance"):
             table.add_column(col)
         for row in result[key]:
             table.add_row(
-                row["method"], fmt(row["rot_err_deg_mean"]), fmt(row["rot_err_deg_max"]),
+                row["method"], fmt(row["rot_err_deg_mean"]), fmt(row.get("rot_err_deg_median", float("nan"))),
+                fmt(row["rot_err_deg_max"]),
                 fmt(row["trans_err_rel_mean"], 100.0), f"{row['failures']}/{row['n_sources']}",
                 fmt(row["time_s_per_instance"], digits=1),
             )
-        Console().print(table)
-    Console().print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["time_s"].items()))
+        console.print(table)
+    console.print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["time_s"].items()))
