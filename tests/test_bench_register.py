@@ -21,7 +21,9 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 
 torch.set_num_threads(1)
 
-INTERFACE_KEYS = {"method", "rot_err_deg_mean", "rot_err_deg_max", "trans_err_rel_mean", "failures", "time_s_per_instance"}
+INTERFACE_KEYS = {
+    "method", "rot_err_deg_mean", "rot_err_deg_max", "trans_err_rel_mean", "failures", "time_s_per_instance",
+}
 
 
 # ----------------------------------------------------------------------------- labels_from_masks

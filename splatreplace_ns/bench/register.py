@@ -73,6 +73,9 @@ class BenchRegisterConfig:
     """Relative depth margin of the visibility test when labelling Gaussians from the masks (wider than
     carving's 0.02: at silhouettes the rendered expected depth of a short-trained model lies in front of the
     surface Gaussians, and a tight margin leaves them unlabelled)."""
+    min_opacity: float = 0.0
+    """Register only the Gaussians of an instance with opacity above this (0: all of them, as the method
+    does; a diagnostic knob: low-opacity Gaussians sit off the surface and pull ICP)."""
     seg_run: Optional[Path] = None
     """config.yml of a finished splat-replace run with segmentation: also register its segmented instances."""
     seg_rows: Optional[Tuple[str, ...]] = None
@@ -153,7 +156,9 @@ def scale_intrinsics(Ks: torch.Tensor, from_size: Tuple[int, int], to_size: Tupl
     return scale @ Ks
 
 
-def match_segments_to_ground_truth(seg_labels: torch.Tensor, gt_labels: torch.Tensor) -> Dict[int, Tuple[Optional[int], float]]:
+def match_segments_to_ground_truth(
+    seg_labels: torch.Tensor, gt_labels: torch.Tensor
+) -> Dict[int, Tuple[Optional[int], float]]:
     """Ground-truth instance of each segmented instance by majority overlap.
 
     Args:
@@ -258,7 +263,9 @@ def train_or_load_base(cfg: BenchRegisterConfig, data: Path) -> Tuple[Any, Path,
 
     name = f"base_{data.name}_{cfg.base_iterations}it"
     out = (cfg.out_dir / cfg.preset).resolve()
-    config = make_trainer_config(data.resolve(), out, cfg.base_iterations, contrastive_iterations=0, experiment_name=name)
+    config = make_trainer_config(
+        data.resolve(), out, cfg.base_iterations, contrastive_iterations=0, experiment_name=name
+    )
     config_path = config.get_base_dir() / "config.yml"
     t0 = time.perf_counter()
     if _finished_run(config_path):
@@ -315,11 +322,14 @@ def label_gaussians_from_ground_truth(pipeline, depth_tolerance: float) -> torch
         _, alpha, depth = model.render_features(dataset.cameras[idx : idx + 1], features=ones)
         depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])).cpu())
     return labels_from_masks(
-        model.means.detach().cpu(), viewmats, Ks, width, height, torch.stack(masks), torch.stack(depths), depth_tolerance
+        model.means.detach().cpu(), viewmats, Ks, width, height, torch.stack(masks), torch.stack(depths),
+        depth_tolerance,
     )
 
 
-def instance_gaussians(model, labels: torch.Tensor, ids, sh_degree: Optional[int]) -> Dict[int, InstanceGaussians]:
+def instance_gaussians(
+    model, labels: torch.Tensor, ids, sh_degree: Optional[int], min_opacity: float = 0.0
+) -> Dict[int, InstanceGaussians]:
     """The Gaussians of each labelled instance, activated (linear scales, opacities in [0, 1]), SH colours.
 
     Args:
@@ -327,6 +337,7 @@ def instance_gaussians(model, labels: torch.Tensor, ids, sh_degree: Optional[int
         labels: [N] instance per Gaussian.
         ids: instance ids to extract.
         sh_degree: SH degree the model renders with (None: plain RGB from sigmoid(features_dc)).
+        min_opacity: keep only Gaussians with a larger opacity (0 keeps all).
     """
     with torch.no_grad():
         means = model.means.detach().cpu()
@@ -341,7 +352,7 @@ def instance_gaussians(model, labels: torch.Tensor, ids, sh_degree: Optional[int
     labels = labels.cpu()
     out = {}
     for iid in ids:
-        keep = labels == int(iid)
+        keep = (labels == int(iid)) & (opacities > min_opacity)
         out[int(iid)] = InstanceGaussians(
             means[keep], quats[keep], scales[keep], opacities[keep], colors[keep], sh_degree=sh_degree, id=int(iid)
         )
@@ -399,7 +410,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
         elif row == "fpfh_no_icp":
             out.append((row, replace(base, method="fpfh", icp=False)))
         elif row == "matchers":
-            out += [(f"matcher:{m}", replace(base, method="ours", robust_matcher=m)) for m in available_matchers(onnx_model)]
+            for m in available_matchers(onnx_model):
+                out.append((f"matcher:{m}", replace(base, method="ours", robust_matcher=m)))
         elif row.startswith("matcher:"):
             name = row.split(":", 1)[1]
             known = available_matchers(onnx_model)
@@ -408,7 +420,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, fpfh_no_icp"
+                f"unknown row {row!r}; choose from ours, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                "fpfh_no_icp"
             )
     return out
 
@@ -511,7 +524,9 @@ def run_rows(
     from rich.console import Console
 
     console = Console()
-    empty = {iid: f"instance {iid}: no Gaussians carry its label" for iid, g in instances.items() if g.num_gaussians == 0}
+    empty = {
+        iid: f"instance {iid}: no Gaussians carry its label" for iid, g in instances.items() if g.num_gaussians == 0
+    }
     present = {iid: g for iid, g in instances.items() if g.num_gaussians > 0}
     viewmats, Ks, width, height = train_cameras
     done: List[Tuple[RegistrationConfig, Dict]] = []
@@ -549,7 +564,7 @@ def run_segmentation_rows(cfg: BenchRegisterConfig, rows: List[Tuple[str, Regist
     matched = match_segments_to_ground_truth(seg_labels, gt_labels)
     classes = {int(inst["id"]): str(inst["class"]) for inst in model.instances}
     gt_of = {iid: matched.get(iid, (None, 0.0))[0] for iid in classes}
-    instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline))
+    instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline), cfg.min_opacity)
     result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation")
     hit = {g for g in gt_of.values() if g is not None}
     return {
@@ -571,9 +586,11 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     rows = row_configs(cfg, tuple(cfg.rows))
     pipeline = scene.pipeline
     ids = sorted(scene.ground_truth)
-    instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline))
+    instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline), cfg.min_opacity)
     classes = {i: scene.ground_truth[i].cls for i in ids}
-    result_rows = run_rows(rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks")
+    result_rows = run_rows(
+        rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks"
+    )
     result: Dict[str, Any] = {
         "benchmark": "register",
         "preset": cfg.preset,
@@ -592,7 +609,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     result["time_s"] = {**scene.time_s, "total": time.perf_counter() - t_start}
     result["parameters"] = {
         "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
-        "depth_tolerance": cfg.depth_tolerance, "rows": list(cfg.rows), "model_reused": scene.reused,
+        "depth_tolerance": cfg.depth_tolerance, "min_opacity": cfg.min_opacity, "rows": list(cfg.rows),
+        "model_reused": scene.reused,
         "run": str(scene.config_path), "sh_degree": model_sh_degree(pipeline),
         "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)},
     }
@@ -633,8 +651,9 @@ def print_table(result: Dict) -> None:
     for key, title in tables:
         table = Table(title=f"registration on '{result['preset']}': {title}")
         table.add_column("method", no_wrap=True)
-        for col in ("rot mean (°)", "rot median (°)", "rot max (°)", "trans mean (% diag)", "failures", "s/instance"):
+        for col in ("rot mean (°)", "rot median (°)", "rot max (°)", "trans mean (% diag)", "failures"):
             table.add_column(col)
+        table.add_column("s/instance")
         for row in result[key]:
             table.add_row(
                 row["method"], fmt(row["rot_err_deg_mean"]), fmt(row.get("rot_err_deg_median", float("nan"))),
