@@ -89,6 +89,9 @@ def test_replaced_scene_renders_and_survives_the_checkpoint(replaced, tmp_path):
     assert torch.isfinite(before).all()
     metrics = pipeline.get_average_eval_image_metrics()
     assert np.isfinite(metrics["psnr"]) and metrics["psnr"] > 12
+    assert np.isfinite(metrics["psnr_masked"])
+    # ns-eval's report scores the replaced scene's instances against the ground-truth masks
+    assert metrics["segmentation"]["miou"] > 0.4, metrics["segmentation"]
 
     _, loaded, _, _ = eval_setup(config.get_base_dir() / "config.yml", test_mode="test")
     assert loaded.model.stage == "finetune"

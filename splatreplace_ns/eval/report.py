@@ -119,10 +119,7 @@ def segmentation_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
     if getattr(dataset, "instance_mask_filenames", None) is None:
         return None, "the eval views have no ground-truth instance masks"
     if getattr(model, "has_templates", False):
-        return None, (
-            "the scene has been replaced by shared templates, whose rendered features no longer separate the "
-            "instances; segmentation is scored on the segmented model (before registration)"
-        )
+        return replaced_segmentation_scores(pipeline, dataset)
     clicks = pipeline.clicks_path()
     if not clicks.exists():
         return None, f"{clicks} not found: the click queries are needed to render the instance masks"
@@ -135,6 +132,28 @@ def segmentation_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
         "click_failures": scores["failures"],
         "views": len(dataset),
         "definition": "test-view masks = rendered features within tau of the click queries (bench segment)",
+    }, None
+
+
+@torch.no_grad()
+def replaced_segmentation_scores(pipeline, dataset) -> Tuple[Optional[Dict], Optional[str]]:
+    """mIoU/mAcc of the replaced scene: each rendered pixel takes the instance of the template copy it
+    shows (``model.render_instance_ids``), matched to ground truth through the clicks."""
+    from splatreplace_ns.eval.segmentation import segmentation_scores
+
+    mapping, why = instance_gt_ids(pipeline)
+    if not mapping:
+        return None, why or "no instance could be matched to a ground-truth id"
+    preds, gts = [], []
+    for index in range(len(dataset)):
+        camera = dataset.cameras[index : index + 1].to(pipeline.device)
+        preds.append(pipeline.model.render_instance_ids(camera).cpu())
+        gts.append(dataset.get_data(index, image_type="uint8")["instance_mask"][..., 0].long())
+    scores = segmentation_scores(torch.stack(preds), torch.stack(gts), mapping)
+    return {
+        "miou": scores["miou"], "macc": scores["macc"], "iou": scores["iou"], "acc": scores["acc"],
+        "views": len(dataset),
+        "definition": "replaced scene: pixel label = instance of the template copy rendered there (alpha >= 0.5)",
     }, None
 
 

@@ -41,7 +41,7 @@ class InstancedScene:
 
     def compose(self) -> ComposedScene:
         """The replaced scene in world coordinates (float32 torch tensors on the CPU)."""
-        a = {k: torch.from_numpy(np.asarray(v)) for k, v in self.arrays.items() if k != "format"}
+        a = {k: torch.from_numpy(np.asarray(v)) for k, v in self.arrays.items() if k not in ("format", "class_names")}
         n, K = a["means"].shape[0], a["sh"].shape[1]
         ids, cls, slot = a["instance_ids"].long(), a["instance_class"].long(), a["instance_slot"].long()
         gauss_class = a["gauss_class"].long()
