@@ -201,3 +201,50 @@ def test_bench_json_interface(tiny_bench):
     for key in ("machine", "parameters", "time_s"):
         assert key in data
     assert data["time_s"]["total"] > 0 and data["machine"]["versions"]["torch"]
+
+
+def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
+    """--seg-run on a copy of the trained run whose stored segmentation is the ground truth under other ids:
+    every segment must be matched to its ground-truth instance, and registering the renamed instances must
+    give the same errors per ground-truth instance as the ground-truth rows."""
+    from dataclasses import replace
+
+    import yaml
+
+    from splatreplace_ns.bench.register import run_register_bench
+
+    cfg, scene = tiny_bench
+    rename = {1: 3, 2: 1, 3: 2}  # ground-truth id → segment id
+    config = yaml.load(scene.config_path.read_text(), Loader=yaml.Loader)
+    source_models = config.get_checkpoint_dir()
+    config.output_dir = tmp_path
+    config.experiment_name = "segmented"
+    config.save_config()
+    seg_models = config.get_checkpoint_dir()
+    seg_models.mkdir(parents=True)
+    for ckpt in source_models.glob("step-*.ckpt"):
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        extra = state["pipeline"]["_model._extra_state"]
+        gt = scene.gt_labels.clone()
+        extra["instance_labels"] = torch.zeros_like(gt)
+        for gt_id, seg_id in rename.items():
+            extra["instance_labels"][gt == gt_id] = seg_id
+        extra["instances"] = [{"id": seg_id, "class": "crate"} for seg_id in sorted(rename.values())]
+        extra["stage"] = "segmented"
+        torch.save(state, seg_models / ckpt.name)
+
+    seg_cfg = replace(cfg, rows=("ours",), seg_run=config.get_base_dir() / "config.yml", json=None)
+    result = run_register_bench(seg_cfg, scene)
+    matching = result["segmentation"]["matching"]
+    assert {int(k): v["gt_id"] for k, v in matching.items()} == {v: k for k, v in rename.items()}
+    assert all(v["overlap"] == 1.0 for v in matching.values())
+    assert result["segmentation"]["missed_gt"] == [] and result["segmentation"]["unmatched_segments"] == []
+    (gt_row,), (seg_row,) = result["rows"], result["rows_segmentation"]
+    assert INTERFACE_KEYS <= set(seg_row)
+    by_gt = {e["gt_id"]: e for e in gt_row["per_instance"]}
+    for entry in seg_row["per_instance"]:
+        twin = by_gt[entry["gt_id"]]
+        assert entry["id"] == rename[entry["gt_id"]] and entry["success"] == twin["success"]
+        if twin["success"]:
+            assert entry["rot_err_deg"] == pytest.approx(twin["rot_err_deg"], abs=1e-6)
+            assert entry["trans_err_rel"] == pytest.approx(twin["trans_err_rel"], abs=1e-9)

@@ -10,14 +10,17 @@ alone. Every instance is then registered onto its class template with
 * ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, ICP);
 * ``no_virtual_views``: the training cameras instead of the virtual sphere;
 * ``no_icp``: without the ICP refinement;
-* ``matcher:NAME``: each matcher of ``splatreplace_ns.register.matching.MATCHERS`` as the robust matcher;
+* ``matcher:NAME``: each matcher of ``splatreplace_ns.register.matching.MATCHERS`` as the robust matcher
+  (fast ranking unchanged; "onnx" only with an ONNX model); a row whose settings equal an earlier row's
+  (``matcher:xfeat`` = ``ours``) reuses that result and says so (``same_as``);
 * ``fpfh`` / ``fpfh_no_icp``: FPFH + RANSAC on the centres, with and without ICP.
 
 Errors are those of the source's pose implied by the estimate, ``T_est⁻¹ · P_template``, against its
 ground-truth pose ``P_source`` (both object→world in the model's normalised frame): rotation as the
 geodesic angle modulo the instance's symmetry, translation as a fraction of the class mesh's bounding-box
 diagonal (scaled into the normalised frame). Templates are left out of the statistics; a registration that
-reports ``success=False`` is a failure and is left out of the error means. Time per instance = wall time of
+reports ``success=False`` (or an instance that no Gaussian is labelled with) is a failure and is left out
+of the error means. Time per instance = wall time of
 ``register_instances`` for the row (template renders included) / number of sources.
 
 With ``--seg-run CONFIG.yml`` (a finished splat-replace run with segmentation, e.g. from ``splatreplace
