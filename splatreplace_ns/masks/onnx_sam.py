@@ -46,6 +46,9 @@ class OnnxSam:
     """Encoder + decoder sessions, checked against the expected signature when loaded."""
 
     def __init__(self, encoder: Optional[Path], decoder: Optional[Path]):
+        missing = [flag for flag, path in (("--sam-encoder", encoder), ("--sam-decoder", decoder)) if path is None]
+        if missing:  # name every missing flag before touching any file
+            raise OnnxModelError(f"the onnx-sam backend needs {' and '.join(missing)} (a SAM-style ONNX encoder/decoder pair)")
         self.encoder = _session(encoder, "image encoder", "--sam-encoder")
         self.decoder = _session(decoder, "mask decoder", "--sam-decoder")
         names = [i.name for i in self.decoder.get_inputs()]
