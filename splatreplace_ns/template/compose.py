@@ -167,32 +167,40 @@ def compose_scene(
     K = sh.shape[1]
     degree = int(round(math.sqrt(K))) - 1 if sh_degree is None else sh_degree
     background = torch.nonzero(gauss_class == 0).squeeze(-1)
-    parts = {k: [] for k in ("means", "quats", "log_scales", "logit_opacities", "sh", "param_index", "instance_id")}
-
-    def add(idx, m, q, shc, inst_id):
-        parts["means"].append(m)
-        parts["quats"].append(q)
-        parts["log_scales"].append(log_scales[idx])
-        parts["logit_opacities"].append(logit_opacities[idx])
-        parts["sh"].append(shc)
-        parts["param_index"].append(idx)
-        parts["instance_id"].append(torch.full_like(idx, int(inst_id)))
-
-    add(background, means[background], quats[background], sh[background], 0)
-    if len(instance_ids):
-        rot = sh_rotation(pose_R, degree)[..., :K, :K] if K > 1 else None  # [I, K, K]
+    # One gather per tensor for all copies (row order: background, then instance by instance): a gather's
+    # backward writes a full-size gradient, so gathering per instance would cost one full [N, S, K, 3]
+    # buffer per instance and step.
+    rows, slots, counts, kept = [background], [], [], []
     for i in range(len(instance_ids)):
         idx = torch.nonzero(gauss_class == instance_class[i]).squeeze(-1)
-        if idx.numel() == 0:
-            continue
-        R, t = pose_R[i], pose_t[i]
-        m = means[idx] @ R.T + t
-        q = quat_multiply(pose_q[i].expand(idx.numel(), 4), quats[idx])
-        coeffs = mix_sh(sh[idx], sh_offsets[idx, instance_slot[i]], lam)
-        if rot is not None:
-            coeffs = torch.einsum("kl,nlc->nkc", rot[i], coeffs)
-        add(idx, m, q, coeffs, instance_ids[i])
-    return ComposedScene(**{k: torch.cat(v) for k, v in parts.items()})
+        if idx.numel():
+            rows.append(idx)
+            slots.append(torch.full_like(idx, int(instance_slot[i])))
+            counts.append(idx.numel())
+            kept.append(i)
+    param_index = torch.cat(rows)
+    n_bg = background.numel()
+    inst_rows = param_index[n_bg:]
+    instance_id = torch.cat([torch.zeros_like(background)]
+                            + [torch.full((n,), int(instance_ids[i]), dtype=torch.long, device=background.device)
+                               for i, n in zip(kept, counts)])
+    means_all, quats_all, sh_all = means[param_index], quats[param_index], sh[param_index]
+    if not kept:
+        return ComposedScene(means_all, quats_all, log_scales[param_index], logit_opacities[param_index], sh_all,
+                             param_index, instance_id)
+    offsets = sh_offsets[inst_rows, torch.cat(slots)]  # [M_inst, K, 3]
+    rot = sh_rotation(pose_R[kept], degree)[..., :K, :K] if K > 1 else None  # [I', K, K]
+    out_means, out_quats, out_sh = [means_all[:n_bg]], [quats_all[:n_bg]], [sh_all[:n_bg]]
+    start = n_bg
+    for k, (i, n) in enumerate(zip(kept, counts)):
+        block = slice(start, start + n)
+        out_means.append(means_all[block] @ pose_R[i].T + pose_t[i])
+        out_quats.append(quat_multiply(pose_q[i].expand(n, 4), quats_all[block]))
+        coeffs = mix_sh(sh_all[block], offsets[block.start - n_bg : block.stop - n_bg], lam)
+        out_sh.append(torch.einsum("kl,nlc->nkc", rot[k], coeffs) if rot is not None else coeffs)
+        start += n
+    return ComposedScene(torch.cat(out_means), torch.cat(out_quats), log_scales[param_index],
+                         logit_opacities[param_index], torch.cat(out_sh), param_index, instance_id)
 
 
 def offsets_l1(sh_offsets: Tensor, gauss_class: Tensor, slots_per_class: Dict[int, int]) -> Tensor:
