@@ -133,12 +133,9 @@ def score_masks(scene: Path, capture: Path, tolerance: int) -> Dict:
 
 
 def _scene(cfg: BenchMasksConfig) -> Path:
-    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.bench.scenes import cached_scene
 
-    data = cfg.data_root / f"{cfg.preset}_{cfg.res}_{cfg.n_train}_{cfg.n_test}"
-    if not (data / "transforms.json").exists():
-        make_scene(cfg.preset, data, res=cfg.res, seed=0, n_train=cfg.n_train, n_test=cfg.n_test)
-    return data
+    return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
 
 
 def with_ground_truth_masks(scene: Path, capture: Path, out: Path) -> Path:

@@ -69,12 +69,9 @@ class BenchSegmentConfig:
 
 
 def _scene(cfg: BenchSegmentConfig) -> Path:
-    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.bench.scenes import cached_scene
 
-    data = cfg.data_root / f"{cfg.preset}_{cfg.res}_{cfg.n_train}_{cfg.n_test}"
-    if not (data / "transforms.json").exists():
-        make_scene(cfg.preset, data, res=cfg.res, seed=0, n_train=cfg.n_train, n_test=cfg.n_test)
-    return data
+    return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
 
 
 def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01) -> int:

@@ -24,6 +24,8 @@ from typing import Dict, List, Optional, Tuple
 
 import torch
 
+from splatreplace_ns.bench.scenes import cached_scene
+
 ABLATIONS = ("shared_only", "offsets_only", "no_pose_refinement")
 METRICS = ("psnr", "psnr_masked", "ssim", "ssim_masked")
 
@@ -65,16 +67,6 @@ class BenchTemplateConfig:
             self.json.write_text(json.dumps(result, indent=2) + "\n")
             print(f"wrote {self.json}")
         return result
-
-
-def scene_path(preset: str, res: str, n_train: int, n_test: int, root: Path) -> Path:
-    """A sim scene in ``root`` (made once, then reused)."""
-    from splatreplace_ns.sim import make_scene
-
-    data = root / f"{preset}_{res}_{n_train}_{n_test}"
-    if not (data / "transforms.json").exists():
-        make_scene(preset, data, res=res, seed=0, n_train=n_train, n_test=n_test)
-    return data
 
 
 def test_metrics(pipeline) -> Dict[str, float]:
@@ -144,7 +136,7 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
         raise ValueError(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS)}")
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
     t0 = time.perf_counter()
-    data = scene_path(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
+    data = cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
     out = cfg.out_dir / f"template_{cfg.preset}"
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     sim_s = time.perf_counter() - t0
@@ -168,8 +160,6 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
         trainer, seconds = _run(ab_cfg)
         ablations[name] = {**test_metrics(trainer.pipeline), "time_s": seconds}
         del trainer
-
-    import nerfstudio  # noqa: F401
 
     return {
         "benchmark": "template",
