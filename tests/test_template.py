@@ -134,7 +134,6 @@ def test_every_instance_keeps_its_own_gaussians_and_gets_the_others():
 def test_single_instance_class_renders_exactly_as_before():
     params, labels = _random_scene(n_inst=(60,))
     params["means"] = params["means"] * 0.3 + torch.tensor([0.0, 0.0, 4.0])
-    T = _pose([0.2, 0.1, -0.3], [0.5, 0.0, 0.2])  # any registration of a lone instance is to itself: identity
     out, table = build_templates(params, labels, {1: "vase"}, {1: torch.eye(4)}, {"vase": 1})
     scene = _compose(out, table)
     K = torch.tensor([[40.0, 0, 32], [0, 40.0, 24], [0, 0, 1]])
@@ -148,7 +147,6 @@ def test_single_instance_class_renders_exactly_as_before():
     before = render(params["means"], params["quats"], params["scales"], params["opacities"], sh)
     after = render(scene.means, scene.quats, scene.log_scales, scene.logit_opacities, scene.sh)
     assert torch.allclose(before, after, atol=1e-4)
-    del T
 
 
 def test_failed_registration_stays_background():
