@@ -32,8 +32,17 @@ class SplatReplaceTrainer(Trainer):
         super().__init__(config, local_rank, world_size)
 
 
+@dataclass
+class FusedAdamOptimizerConfig(AdamOptimizerConfig):
+    """nerfstudio's Adam config with torch's fused kernel: the same update, about 8x faster on CPU than the
+    default per-tensor loop for the millions of per-Gaussian values (SH offsets) the fine-tuning stage updates."""
+
+    fused: bool = True
+    """Use torch.optim.Adam(fused=True) (CPU and CUDA)."""
+
+
 def _adam(lr: float) -> dict:
-    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
+    return {"optimizer": FusedAdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": None}
 
 
 def splat_replace_trainer_config(
@@ -57,7 +66,7 @@ def splat_replace_trainer_config(
         ),
         optimizers={
             "means": {
-                "optimizer": AdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
+                "optimizer": FusedAdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=base_iterations),
             },
             "features_dc": _adam(0.0025),
@@ -71,7 +80,7 @@ def splat_replace_trainer_config(
             "template_class": _adam(0.0),  # a label carried through densification, never optimised
             "exposure": _adam(1e-3),
             "camera_opt": {
-                "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+                "optimizer": FusedAdamOptimizerConfig(lr=1e-4, eps=1e-15),
                 "scheduler": ExponentialDecaySchedulerConfig(
                     lr_final=5e-7, max_steps=base_iterations, warmup_steps=1000, lr_pre_warmup=0
                 ),
