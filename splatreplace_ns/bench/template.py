@@ -148,9 +148,8 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
 
     ablations: Dict[str, Dict] = {}
     for name in cfg.ablations:
-        ab_cfg = make_trainer_config(data, out, B, C, F, experiment_name=f"ablation_{name}", progress=True)
-        ab_cfg.load_dir = checkpoint_dir
-        ab_cfg.load_step = B + C - 1
+        ab_cfg = make_trainer_config(data, out, B, C, F, experiment_name=f"ablation_{name}", progress=True,
+                                     resume_from=(checkpoint_dir, B + C - 1))
         if name == "shared_only":
             ab_cfg.pipeline.model.template_mix = 1.0
         elif name == "offsets_only":

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 
@@ -20,10 +20,21 @@ def make_trainer_config(
     experiment_name: Optional[str] = None,
     steps_per_save: Optional[int] = None,
     progress: bool = False,
+    resume_from: Optional[Tuple[Path, int]] = None,
 ) -> TrainerConfig:
-    """splat-replace's TrainerConfig set up for an unattended run (no viewer, no evaluation mid-run)."""
+    """splat-replace's TrainerConfig set up for an unattended run (no viewer, no evaluation mid-run).
+
+    ``resume_from=(checkpoint_dir, step)`` continues a run from its checkpoint at ``step`` up to the same
+    total as a fresh run: nerfstudio's Trainer runs ``max_num_iterations`` steps *after* the loaded one,
+    so only the steps that are left are asked for.
+    """
     config = splat_replace_trainer_config(base_iterations, contrastive_iterations, finetune_iterations)
     max_num_iterations = config.pipeline.total_iterations
+    if resume_from is not None:
+        config.load_dir, config.load_step = Path(resume_from[0]), int(resume_from[1])
+        if not 0 <= config.load_step < max_num_iterations - 1:
+            raise ValueError(f"resume step {config.load_step} is not inside a run of {max_num_iterations} steps")
+        config.max_num_iterations = max_num_iterations - (config.load_step + 1)
     config.pipeline.datamanager.data = Path(data)
     config.output_dir = Path(output_dir)
     config.experiment_name = experiment_name or Path(data).name
@@ -38,12 +49,23 @@ def make_trainer_config(
     return config
 
 
-def run_training(config: TrainerConfig) -> Trainer:
-    """Saves ``config.yml`` like ``ns-train`` does, trains, and returns the trainer."""
+def run_training(config: TrainerConfig, after_step: Optional[Callable[[Trainer, int], None]] = None) -> Trainer:
+    """Saves ``config.yml`` like ``ns-train`` does, trains, and returns the trainer.
+
+    ``after_step(trainer, step)`` runs after every training iteration, after the pipeline's own callbacks
+    (so after the segmentation that ends the contrastive stage): benchmarks time stages and keep extra
+    checkpoints with it.
+    """
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
     config.set_timestamp()
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
+    if after_step is not None:
+        trainer.callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: after_step(trainer, step))
+        )
     trainer.train()
     return trainer
 
