@@ -13,6 +13,7 @@ from splatreplace_ns.bench.register import BenchRegisterConfig
 from splatreplace_ns.bench.render import BenchRenderConfig
 from splatreplace_ns.bench.segment import BenchSegmentConfig
 from splatreplace_ns.bench.template import BenchTemplateConfig
+from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig
 from splatreplace_ns.bench.sim import BenchSimConfig
 from splatreplace_ns.demo import DemoCommand
 from splatreplace_ns.export import ExportCommand
@@ -26,6 +27,7 @@ BenchCommands = Union[
     Annotated[BenchTemplateConfig, tyro.conf.subcommand("template")],
     Annotated[BenchRegisterConfig, tyro.conf.subcommand("register")],
     Annotated[BenchMasksConfig, tyro.conf.subcommand("masks")],
+    Annotated[BenchTradeoffConfig, tyro.conf.subcommand("tradeoff")],
 ]
 
 
