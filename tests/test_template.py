@@ -189,6 +189,19 @@ def test_offsets_l1_counts_only_used_slots():
     assert offsets_l1(offsets, cls, {}).item() == 0.0
 
 
+def test_composed_offsets_are_the_used_slots_so_their_mean_is_the_l1():
+    params, labels = _random_scene()
+    out, table = build_templates(params, labels, {1: "chair", 2: "chair", 3: "table"},
+                                 {1: torch.eye(4), 2: _pose([0.3, -1.0, 0.5], [1.0, 2.0, -0.5]), 3: torch.eye(4)},
+                                 {"chair": 1, "table": 3})
+    out["sh_offsets"] = torch.randn_like(out["sh_offsets"])
+    scene = _compose(out, table)
+    assert scene.offsets.shape == (int((scene.instance_id > 0).sum()), 16, 3)
+    classes = out["template_class"][:, 0].long()
+    expected = offsets_l1(out["sh_offsets"], classes, table.slots_per_class)
+    assert scene.offsets.abs().mean().item() == pytest.approx(expected.item(), rel=1e-6)
+
+
 def test_transform_gaussians_moves_covariances_with_the_object():
     params, _ = _random_scene(n_bg=20, n_inst=())
     T = _pose([0.4, 0.2, -1.2], [0.1, 0.2, 0.3])

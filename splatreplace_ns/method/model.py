@@ -533,7 +533,10 @@ class SplatReplaceModel(SplatfactoModel):
         depth = torch.where(out.alpha > 0, out.depth, out.depth.detach().max())
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
-        return {"rgb": rgb, "depth": depth, "accumulation": out.alpha, "background": background}
+        outputs = {"rgb": rgb, "depth": depth, "accumulation": out.alpha, "background": background}
+        if self.training and scene is not None and scene.offsets is not None:
+            outputs["sh_offsets_in_use"] = scene.offsets  # the L1 on offsets reuses this gather (see get_loss_dict)
+        return outputs
 
     @staticmethod
     def _tint(colors: torch.Tensor, selected: torch.Tensor, is_sh: bool) -> torch.Tensor:
@@ -549,10 +552,13 @@ class SplatReplaceModel(SplatfactoModel):
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if self.has_templates and self.config.offset_l1_lambda > 0:
-            classes = self.gauss_params["template_class"].detach()[:, 0].round().long()
-            loss_dict["sh_offset_l1"] = self.config.offset_l1_lambda * offsets_l1(
-                self.gauss_params["sh_offsets"], classes, self.instance_table.slots_per_class
-            )
+            in_use = outputs.get("sh_offsets_in_use")
+            if in_use is not None:  # the same mean over used (Gaussian, slot) pairs, without a second full-size gradient
+                l1 = in_use.abs().mean()
+            else:
+                classes = self.gauss_params["template_class"].detach()[:, 0].round().long()
+                l1 = offsets_l1(self.gauss_params["sh_offsets"], classes, self.instance_table.slots_per_class)
+            loss_dict["sh_offset_l1"] = self.config.offset_l1_lambda * l1
         if self.config.opacity_l1_lambda > 0 or self.config.scale_l1_lambda > 0:
             opacity_l1, scale_l1 = base_regularisers(self.opacities, self.scales)
             loss_dict["opacity_l1"] = self.config.opacity_l1_lambda * opacity_l1

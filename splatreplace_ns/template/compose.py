@@ -116,7 +116,8 @@ class ComposedScene:
     Attributes:
         means [M, 3], quats [M, 4], log_scales [M, 3], logit_opacities [M, 1], sh [M, K, 3];
         param_index [M] long: the stored Gaussian each rendered one comes from (background first, then
-        instance by instance); instance_id [M] long: 0 for background, else the instance's id.
+        instance by instance); instance_id [M] long: 0 for background, else the instance's id;
+        offsets [M_inst, K, 3]: the SH offsets in use (rows of the instances, in order), or None.
     """
 
     means: Tensor
@@ -126,6 +127,7 @@ class ComposedScene:
     sh: Tensor
     param_index: Tensor
     instance_id: Tensor
+    offsets: Optional[Tensor] = None
 
 
 def mix_sh(shared: Tensor, offset: Tensor, lam: float) -> Tensor:
@@ -166,11 +168,13 @@ def compose_scene(
     """
     K = sh.shape[1]
     degree = int(round(math.sqrt(K))) - 1 if sh_degree is None else sh_degree
+    device = means.device
     background = torch.nonzero(gauss_class == 0).squeeze(-1)
-    # One gather per tensor for all copies (row order: background, then instance by instance): a gather's
-    # backward writes a full-size gradient, so gathering per instance would cost one full [N, S, K, 3]
-    # buffer per instance and step.
-    rows, slots, counts, kept = [background], [], [], []
+    # Row order: background, then instance by instance. Every per-row quantity is built with gathers,
+    # per-row broadcasting and split/cat, never by slicing a big tensor per instance: the backward of a
+    # slice writes a zero-filled buffer of the whole tensor, once per instance and step (that was most of
+    # the fine-tuning step on CPU).
+    rows, slots, counts, kept = [], [], [], []
     for i in range(len(instance_ids)):
         idx = torch.nonzero(gauss_class == instance_class[i]).squeeze(-1)
         if idx.numel():
@@ -178,29 +182,29 @@ def compose_scene(
             slots.append(torch.full_like(idx, int(instance_slot[i])))
             counts.append(idx.numel())
             kept.append(i)
-    param_index = torch.cat(rows)
     n_bg = background.numel()
-    inst_rows = param_index[n_bg:]
-    instance_id = torch.cat([torch.zeros_like(background)]
-                            + [torch.full((n,), int(instance_ids[i]), dtype=torch.long, device=background.device)
-                               for i, n in zip(kept, counts)])
-    means_all, quats_all, sh_all = means[param_index], quats[param_index], sh[param_index]
     if not kept:
-        return ComposedScene(means_all, quats_all, log_scales[param_index], logit_opacities[param_index], sh_all,
-                             param_index, instance_id)
+        return ComposedScene(means[background], quats[background], log_scales[background],
+                             logit_opacities[background], sh[background], background, torch.zeros_like(background))
+    inst_rows = torch.cat(rows)  # [M_inst]
+    param_index = torch.cat((background, inst_rows))
+    kept_t = torch.tensor(kept, dtype=torch.long, device=device)
+    row_instance = torch.repeat_interleave(kept_t, torch.tensor(counts, device=device))  # [M_inst] index into I
+    instance_id = torch.cat((torch.zeros_like(background), instance_ids.to(device)[row_instance]))
+
+    R_rows, t_rows, q_rows = pose_R[row_instance], pose_t[row_instance], pose_q[row_instance]
+    means_inst = torch.einsum("mij,mj->mi", R_rows, means[inst_rows]) + t_rows
+    quats_inst = quat_multiply(q_rows, quats[inst_rows])
     offsets = sh_offsets[inst_rows, torch.cat(slots)]  # [M_inst, K, 3]
-    rot = sh_rotation(pose_R[kept], degree)[..., :K, :K] if K > 1 else None  # [I', K, K]
-    out_means, out_quats, out_sh = [means_all[:n_bg]], [quats_all[:n_bg]], [sh_all[:n_bg]]
-    start = n_bg
-    for k, (i, n) in enumerate(zip(kept, counts)):
-        block = slice(start, start + n)
-        out_means.append(means_all[block] @ pose_R[i].T + pose_t[i])
-        out_quats.append(quat_multiply(pose_q[i].expand(n, 4), quats_all[block]))
-        coeffs = mix_sh(sh_all[block], offsets[block.start - n_bg : block.stop - n_bg], lam)
-        out_sh.append(torch.einsum("kl,nlc->nkc", rot[k], coeffs) if rot is not None else coeffs)
-        start += n
-    return ComposedScene(torch.cat(out_means), torch.cat(out_quats), log_scales[param_index],
-                         logit_opacities[param_index], torch.cat(out_sh), param_index, instance_id)
+    coeffs = mix_sh(sh[inst_rows], offsets, lam)
+    if K > 1:  # SH rotation: one [K, K] matrix per instance, applied to its block of rows
+        rot = sh_rotation(pose_R[kept_t], degree)[..., :K, :K]  # [I', K, K]
+        coeffs = torch.cat([torch.einsum("kl,nlc->nkc", rot[k], block) for k, block in enumerate(coeffs.split(counts))])
+    return ComposedScene(
+        torch.cat((means[background], means_inst)), torch.cat((quats[background], quats_inst)),
+        log_scales[param_index], logit_opacities[param_index], torch.cat((sh[background], coeffs)),
+        param_index, instance_id, offsets,
+    )
 
 
 def offsets_l1(sh_offsets: Tensor, gauss_class: Tensor, slots_per_class: Dict[int, int]) -> Tensor:
