@@ -13,6 +13,7 @@ from typing import Type
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from splatreplace_ns.method.cpu_allocator import keep_freed_buffers
 from splatreplace_ns.method.pipeline import SplatReplacePipelineConfig
 
 
@@ -24,11 +25,14 @@ class SplatReplaceTrainerConfig(TrainerConfig):
 
 
 class SplatReplaceTrainer(Trainer):
-    """nerfstudio's Trainer; the only change is that the run length follows the stage schedule."""
+    """nerfstudio's Trainer; the run length follows the stage schedule, and on CPU large freed buffers are
+    kept for reuse (:mod:`splatreplace_ns.method.cpu_allocator`)."""
 
     def __init__(self, config: SplatReplaceTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         if config.max_num_iterations <= 0:
             config.max_num_iterations = config.pipeline.total_iterations
+        if not torch.cuda.is_available() or config.machine.device_type == "cpu":
+            keep_freed_buffers()  # CPU steps reuse their large gradient buffers instead of re-faulting them
         super().__init__(config, local_rank, world_size)
 
 
