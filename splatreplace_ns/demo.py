@@ -21,6 +21,20 @@ from rich.table import Table
 CONSOLE = Console()
 
 
+def instance_table(baseline: Optional[Dict[str, float]], ours: Optional[Dict[str, float]]) -> Optional[Table]:
+    """Per ground-truth instance (0 = background): test-view PSNR of both methods and the gain, worst-seen first."""
+    if not baseline or not ours:
+        return None
+    table = Table(title="per instance: PSNR over its pixels in the test views (worst-seen first)")
+    for col in ("instance", "baseline", "ours", "gain"):
+        table.add_column(col)
+    for key in sorted(set(baseline) & set(ours), key=lambda k: (k == "0", baseline[k])):
+        gain = ours[key] - baseline[key]
+        table.add_row("background" if key == "0" else key, f"{baseline[key]:.2f}", f"{ours[key]:.2f}",
+                      f"[{'green' if gain >= 0 else 'red'}]{gain:+.2f}[/]")
+    return table
+
+
 @dataclass
 class DemoCommand:
     """Run splat-replace and the 3DGS* baseline on the embedded default scene and print the metric table."""
@@ -78,6 +92,9 @@ class DemoCommand:
                           *(("n/a" if m[k] is None else f"{m[k]:.{d}f}")
                             for k, d in (("psnr", 2), ("psnr_masked", 2), ("ssim", 3), ("ssim_masked", 3))))
         CONSOLE.print(table)
+        per_instance = instance_table(pair["baseline"].get("psnr_per_instance"), pair["ours"].get("psnr_per_instance"))
+        if per_instance is not None:
+            CONSOLE.print(per_instance)
         CONSOLE.print("LPIPS and KID: reported by ns-eval when their weights are on disk (never computed with random weights)")
         total_s = time.perf_counter() - start
         config = pair["ours_config"].get_base_dir() / "config.yml"

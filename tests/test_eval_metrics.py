@@ -15,7 +15,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from splatreplace_ns.eval.metrics import MAX_PSNR, psnr, ssim
+from splatreplace_ns.eval.metrics import MAX_PSNR, mse_to_psnr, psnr, squared_error_by_label, ssim
 from splatreplace_ns.eval.perceptual import LocalKID, LocalLPIPS
 from splatreplace_ns.eval.registration import registration_errors
 from splatreplace_ns.eval.report import EvalViewRecorder, json_safe
@@ -79,6 +79,22 @@ def test_masked_psnr_known_answers():
     # masks given as (H, W, 1) int like the dataset's, or (1, 1, H, W), mean the same
     assert psnr(pred, gt, mask[..., None].int() > 0) == pytest.approx(20.0, abs=1e-9)
     assert psnr(pred, gt, mask[None, None]) == pytest.approx(20.0, abs=1e-9)
+
+
+def test_squared_error_by_label_pools_to_the_masked_psnr():
+    gt = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    labels = torch.zeros(H, W, dtype=torch.long)
+    labels[10:20, 15:25] = 3
+    labels[30:35, :] = 7
+    pred = gt.clone()
+    pred[labels == 3] += 0.1  # 20 dB inside instance 3
+    pred[labels == 7] += 0.01  # 40 dB inside instance 7; the background is exact
+    out = squared_error_by_label(pred, gt, labels)
+    assert set(out) == {0, 3, 7}
+    assert out[3][1] == 100 and out[7][1] == 5 * W and out[0][0] == 0.0
+    assert mse_to_psnr(out[3][0] / out[3][1]) == pytest.approx(20.0, abs=1e-9)
+    assert mse_to_psnr(out[7][0] / out[7][1]) == pytest.approx(40.0, abs=1e-9)
+    assert mse_to_psnr(out[3][0] / out[3][1]) == pytest.approx(psnr(pred, gt, labels == 3), abs=1e-9)
 
 
 def test_masked_ssim_is_the_skimage_map_over_the_mask():
@@ -297,7 +313,10 @@ def independent_view_metrics(pipeline):
             channel_axis=-1, full=True,
         )
         interior = (slice(5, -5), slice(5, -5))
+        labels = batch["instance_mask"][..., 0].numpy()
+        squared = ((pred - gt) ** 2).mean(-1)
         rows.append({
+            "squared_error": {int(k): (float(squared[labels == k].sum()), int((labels == k).sum())) for k in np.unique(labels)},
             "psnr": peak_signal_noise_ratio(gt, pred, data_range=1.0),
             "ssim": ssim_value,
             "psnr_masked": -10 * np.log10(np.mean((pred[mask] - gt[mask]) ** 2)) if mask.any() else None,
@@ -329,6 +348,14 @@ def test_eval_report_of_a_segmented_model(segmented_run, tmp_path):
     assert report["masked_views"] == sum(row["psnr_masked"] is not None for row in expected) > 0
     # the masked region is a subset of the image: its figure is not the full-image one
     assert report["psnr_masked"] != pytest.approx(report["psnr"], abs=1e-3)
+    # per instance: the error pooled over its pixels in every view (numpy, independently)
+    pooled = {}
+    for row in expected:
+        for k, (sse, n) in row["squared_error"].items():
+            pooled[k] = (pooled.get(k, (0.0, 0))[0] + sse, pooled.get(k, (0.0, 0))[1] + n)
+    assert set(report["psnr_per_instance"]) == {str(k) for k in pooled} and "0" in report["psnr_per_instance"]
+    for k, (sse, n) in pooled.items():
+        assert report["psnr_per_instance"][str(k)] == pytest.approx(-10 * math.log10(sse / n), abs=1e-4), k
 
     assert set(report["versions"]) >= {"splatreplace_ns", "nerfstudio", "torch", "gsplat"}
     assert report["versions"]["nerfstudio"] == "1.1.5" and report["versions"]["torch"] == torch.__version__

@@ -70,10 +70,14 @@ class BenchTemplateConfig:
 
 
 def test_metrics(pipeline) -> Dict[str, float]:
-    """Average test-view metrics (what ``ns-eval`` reports), restricted to the table's figures."""
+    """Average test-view metrics (what ``ns-eval`` reports), restricted to the table's figures, plus the
+    per-instance PSNR when the dataset has instance masks."""
     pipeline.eval()
     metrics = pipeline.get_average_eval_image_metrics()
-    return {k: (float(metrics[k]) if metrics.get(k) is not None else None) for k in METRICS}
+    out = {k: (float(metrics[k]) if metrics.get(k) is not None else None) for k in METRICS}
+    if "psnr_per_instance" in metrics:  # ground-truth instance id → PSNR over its pixels in the test views
+        out["psnr_per_instance"] = metrics["psnr_per_instance"]
+    return out
 
 
 def _run(config) -> Tuple[object, float]:

@@ -22,7 +22,7 @@ interior, for SSIM) — never NaN.
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -87,6 +87,26 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = No
             return None
         squared = squared[keep]
     return mse_to_psnr(float(squared.mean()))
+
+
+def squared_error_by_label(pred: torch.Tensor, gt: torch.Tensor, labels: torch.Tensor) -> Dict[int, Tuple[float, int]]:
+    """Sum of squared error and pixel count per label, to pool over views (per-instance PSNR).
+
+    Args:
+        pred, gt: (H, W, C) in [0, 1]; labels: (H, W) integer (0 = background, k = instance k).
+
+    Returns:
+        {label: (sum over its pixels of the channel-mean squared error, number of pixels)}; the pooled
+        PSNR of a label is ``mse_to_psnr(sum / count)``, which for one view equals ``psnr(pred, gt, labels == k)``.
+    """
+    pred, gt = _as_hwc(pred, "pred"), _as_hwc(gt, "gt")
+    _check_pair(pred, gt)
+    labels = labels.reshape(pred.shape[:2]).to(pred.device).long()
+    per_pixel = ((pred - gt) ** 2).mean(-1).double()
+    ids, inverse = torch.unique(labels, return_inverse=True)
+    sums = torch.zeros(len(ids), dtype=torch.float64, device=pred.device).index_add_(0, inverse.reshape(-1), per_pixel.reshape(-1))
+    counts = torch.bincount(inverse.reshape(-1), minlength=len(ids))
+    return {int(i): (float(sse), int(n)) for i, sse, n in zip(ids.tolist(), sums.tolist(), counts.tolist())}
 
 
 def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torch.Tensor:

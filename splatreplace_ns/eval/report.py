@@ -23,6 +23,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from splatreplace_ns.eval.metrics import mse_to_psnr, squared_error_by_label
 from splatreplace_ns.eval.perceptual import LocalKID
 
 MASKED_KEYS = ("psnr_masked", "ssim_masked")
@@ -39,6 +40,8 @@ class EvalViewRecorder:
     def __init__(self, model, with_kid: bool = False) -> None:
         self.model = model
         self.views: List[Dict[str, float]] = []
+        self.squared_error: Dict[int, List] = {}
+        """ground-truth label → [summed squared error, pixels] over the views (per-instance PSNR)."""
         self.kid: Optional[LocalKID] = LocalKID() if with_kid else None
 
     def __enter__(self) -> "EvalViewRecorder":
@@ -47,6 +50,12 @@ class EvalViewRecorder:
         def record(outputs, batch):
             metrics, images = original(outputs, batch)
             self.views.append(dict(metrics))
+            if "instance_mask" in batch:
+                gt = self.model.composite_with_background(self.model.get_gt_img(batch["image"]), outputs["background"])
+                for label, (sse, count) in squared_error_by_label(outputs["rgb"], gt, batch["instance_mask"][..., 0]).items():
+                    total = self.squared_error.setdefault(label, [0.0, 0])
+                    total[0] += sse
+                    total[1] += count
             if self.kid is not None and self.kid.available:
                 gt = self.model.composite_with_background(self.model.get_gt_img(batch["image"]), outputs["background"])
                 self.kid.update(gt.permute(2, 0, 1)[None], outputs["rgb"].permute(2, 0, 1)[None])
@@ -58,6 +67,10 @@ class EvalViewRecorder:
 
     def __exit__(self, *exc) -> None:
         del self.model.get_image_metrics_and_images
+
+    def psnr_per_label(self) -> Dict[int, float]:
+        """PSNR of the pooled error over each ground-truth label's pixels in all views (0 = background)."""
+        return {label: mse_to_psnr(sse / count) for label, (sse, count) in sorted(self.squared_error.items()) if count}
 
     def masked_averages(self, get_std: bool = False) -> Dict[str, float]:
         """Mean (and, with ``get_std``, std like nerfstudio's) of each masked metric over the views that have it,
@@ -259,6 +272,13 @@ def evaluation_report(pipeline, recorder: EvalViewRecorder) -> Dict:
         reason = "no eval view contains a ground-truth instance" if has_masks else "the eval views have no ground-truth instance masks"
         unavailable.update({key: reason for key in MASKED_KEYS})
 
+    per_label = recorder.psnr_per_label()
+    if per_label:
+        report["psnr_per_instance"] = {str(k): v for k, v in per_label.items()}
+        report["psnr_per_instance_definition"] = (
+            "PSNR of the squared error pooled over each ground-truth instance's pixels in all eval views; "
+            "key 0 is the background (pixels of no instance)"
+        )
     for name, make in (("segmentation", segmentation_report), ("registration", registration_report)):
         section, reason = make(pipeline)
         if section is None:
