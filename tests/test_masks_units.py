@@ -96,6 +96,25 @@ def test_floor_removed_and_clicked_boxes_found_touching_ones_split():
     assert (ids[truth == 0] == 0).mean() > 0.97
 
 
+def test_geodesic_split_gives_a_seedless_clump_to_its_nearest_side():
+    from splatreplace_ns.masks.clustering import geodesic_split
+
+    rng = np.random.default_rng(0)
+    # two touching boxes along x, plus a tight clump of 30 near-duplicates just beyond the right box (closer
+    # than DBSCAN's radius, farther than any box point's 8th neighbour): in the kNN graph it is an island
+    left = rng.uniform([-1.0, 0, 0], [0.0, 1, 1], (400, 3))
+    right = rng.uniform([0.0, 0, 0], [1.0, 1, 1], (400, 3))
+    clump = np.array([1.35, 0.5, 0.5]) + rng.normal(0, 1e-4, (30, 3))
+    means = np.concatenate([left, right, clump])
+    colours = np.zeros_like(means)
+    seeds = [int(np.argmin(np.linalg.norm(left - [-0.5, 0.5, 0.5], axis=1))),
+             400 + int(np.argmin(np.linalg.norm(right - [0.5, 0.5, 0.5], axis=1)))]
+    owner = geodesic_split(means, colours, seeds, spacing=0.1, cfg=ClusteringConfig())
+    assert (owner >= 0).all()  # nothing left unowned
+    assert (owner[800:] == 1).all()  # the clump goes to the box next to it
+    assert (owner[:400][left[:, 0] < -0.2] == 0).all() and (owner[400:800][right[:, 0] > 0.2] == 1).all()
+
+
 def test_bad_clicks_are_named():
     means, truth, colours = boxes_on_a_floor()
     opacities = np.ones(len(means))

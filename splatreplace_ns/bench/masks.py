@@ -52,8 +52,8 @@ class BenchMasksConfig:
     """Backends to score; onnx-sam needs --sam-encoder/--sam-decoder."""
     sam_encoder: Optional[Path] = None
     sam_decoder: Optional[Path] = None
-    border: str = "grabcut"
-    """Border cleanup of the geometric backend (grabcut, guided, none)."""
+    border: str = "none"
+    """Border cleanup of the geometric backend (none, grabcut, guided)."""
     downstream: bool = True
     """Also train splat-replace on our masks and on the ground-truth masks."""
     downstream_base_iterations: int = 1000
