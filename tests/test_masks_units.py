@@ -115,6 +115,20 @@ def test_geodesic_split_gives_a_seedless_clump_to_its_nearest_side():
     assert (owner[:400][left[:, 0] < -0.2] == 0).all() and (owner[400:800][right[:, 0] > 0.2] == 1).all()
 
 
+def test_gaussians_near_ray_finds_the_surface_the_rendered_depth_missed():
+    from splatreplace_ns.masks.clustering import gaussians_near_ray
+
+    origin = np.zeros(3)
+    # a wall of points at z = 4 around the ray along +z, plus one point far off the ray at the same depth
+    wall = np.array([[0.01, 0.0, 4.0], [-0.02, 0.01, 4.05], [0.0, 0.02, 3.95], [1.0, 0.0, 4.0], [0.0, 0.0, 9.0]])
+    # the rendered depth put the click at z = 3.3 (fuzz in front of the wall): no point within 0.1 of it
+    found = gaussians_near_ray(wall, origin, np.array([0.0, 0.0, 3.3]), radius=0.1, depth_slack=0.25, k=8)
+    assert sorted(found.tolist()) == [0, 1, 2]  # not the point off the ray, not the one far behind
+    assert found[0] == 2  # nearest to the click's depth first
+    assert len(gaussians_near_ray(wall, origin, np.array([0.0, 0.0, 2.0]), 0.1, 0.25, 8)) == 0
+    assert len(gaussians_near_ray(wall, origin, origin, 0.1, 0.25, 8)) == 0
+
+
 def test_bad_clicks_are_named():
     means, truth, colours = boxes_on_a_floor()
     opacities = np.ones(len(means))

@@ -47,6 +47,9 @@ class ClusteringConfig:
     """Solid Gaussians nearest to a lifted click that vote for its cluster."""
     click_radius: float = 2.0
     """The voting Gaussians must lie within this many spacings of the lifted click."""
+    ray_depth_slack: float = 0.25
+    """When none does (the rendered depth missed the surface), the voters are the solid Gaussians within
+    ``click_radius`` spacings of the click's ray whose depth along it is within this fraction of the click's."""
     follow_radius: float = 1.5
     """Faint Gaussians within this many spacings of a solid one take its label."""
     reclaim_radius: float = 0.0
@@ -252,6 +255,11 @@ def clusters_of_clicks(
         dist, idx = tree.query(click.point.double().numpy(), k=k)
         dist, idx = np.atleast_1d(dist), np.atleast_1d(idx)
         near = solid[idx[dist <= cfg.click_radius * clustering.spacing]]
+        if len(near) == 0 and click.camera_centre is not None:
+            # the rendered depth of a fuzzy region can miss the surface: look along the click's ray instead
+            near = solid[gaussians_near_ray(means[solid], click.camera_centre.double().numpy(),
+                                            click.point.double().numpy(), cfg.click_radius * clustering.spacing,
+                                            cfg.ray_depth_slack, k)]
         if len(near) == 0:
             raise ClickError(f"{click.source}: no Gaussian of the base model lies at this point; click on an object")
         values, counts = np.unique(clustering.labels[near], return_counts=True)
@@ -262,6 +270,28 @@ def clusters_of_clicks(
             raise ClickError(f"{click.source}: no instance cluster holds this point (background or loose fuzz)")
         chosen[click.index] = winner
     return chosen
+
+
+def gaussians_near_ray(
+    points: np.ndarray, origin: np.ndarray, point: np.ndarray, radius: float, depth_slack: float, k: int
+) -> np.ndarray:
+    """Indices of up to ``k`` points near the ray from ``origin`` through ``point``, nearest to ``point``'s depth.
+
+    Args:
+        points: [P, 3]; origin, point: [3]; radius: largest distance from the ray;
+        depth_slack: largest |depth − depth of point| along the ray, as a fraction of that depth.
+    """
+    offset = point - origin
+    length = float(np.linalg.norm(offset))
+    if length <= 0:
+        return np.zeros(0, dtype=np.int64)
+    direction = offset / length
+    rel = points - origin
+    along = rel @ direction
+    across = np.linalg.norm(rel - along[:, None] * direction, axis=1)
+    gap = np.abs(along - length)
+    keep = np.flatnonzero((across <= radius) & (gap <= depth_slack * length))
+    return keep[np.argsort(gap[keep], kind="stable")[:k]]
 
 
 def geodesic_split(

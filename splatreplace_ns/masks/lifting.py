@@ -8,7 +8,7 @@ the renderer's pixel centre.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -32,6 +32,8 @@ class LiftedClick:
     """[3] the clicked surface point, normalised world frame."""
     source: str
     """Human-readable origin, for messages."""
+    camera_centre: Optional[torch.Tensor] = None
+    """[3] centre of the clicked frame's camera (the ray the click lies on runs from it through ``point``)."""
 
 
 def view_and_intrinsics(camera: Cameras) -> Tuple[torch.Tensor, torch.Tensor, int, int]:
@@ -125,4 +127,5 @@ def lift_click(
     if float(alpha[row, col, 0]) < min_alpha or not bool(torch.isfinite(depth[row, col, 0])):
         raise ClickError(f"{source}: nothing opaque is rendered at this pixel (empty space or sky); click on an object")
     point = lift_pixel(u, v, float(depth[row, col, 0]), viewmat.double(), K.double()).float()
-    return LiftedClick(index, frame, (float(u), float(v)), cls, point, source)
+    centre = -viewmat[:3, :3].double().T @ viewmat[:3, 3].double()
+    return LiftedClick(index, frame, (float(u), float(v)), cls, point, source, centre.float())
