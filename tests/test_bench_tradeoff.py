@@ -42,7 +42,7 @@ def sweep(tmp_path_factory):
     root = tmp_path_factory.mktemp("tradeoff")
     cfg = BenchTradeoffConfig(
         preset="tiny", res="64x48", n_train=12, n_test=4, base_iterations=B, contrastive_iterations=C,
-        finetune_iterations=F, sweeps=("contrastive", "finetune", "virtual_views", "matcher"),
+        finetune_iterations=F, sweeps=("baseline", "contrastive", "finetune", "virtual_views", "matcher"),
         contrastive_values=(150,), finetune_values=(30,), virtual_views=(9,), matchers=("orb", "no-such-matcher"),
         json=root / "tradeoff.json", data_root=root / "data", out_dir=root / "runs", threads=1,
     )
@@ -53,10 +53,12 @@ def sweep(tmp_path_factory):
 def test_sweep_points_and_their_budgets(sweep):
     cfg, result = sweep
     labels = [(p["sweep"], p["value"]) for p in result["points"]]
-    assert labels == [("reference", None), ("contrastive", 150), ("finetune", 30), ("virtual_views", 9), ("matcher", "orb")]
+    assert labels == [("reference", None), ("baseline", B + C + F), ("contrastive", 150), ("finetune", 30),
+                      ("virtual_views", 9), ("matcher", "orb")]
     runs = cfg.out_dir / "tradeoff_tiny"
     # resumed runs stop at the same total as a fresh run of their budget (not total steps *after* the resume)
     assert _latest_step(runs / "reference") == B + C + F - 1
+    assert _latest_step(runs / "baseline") == B + C + F - 1  # 3DGS* only, the same total
     assert _latest_step(runs / "contrastive_150") == B + 150 + F - 1
     assert _latest_step(runs / "finetune_30") == B + C + 30 - 1
     by_label = {(p["sweep"], p["value"]): p for p in result["points"]}
@@ -70,6 +72,8 @@ def test_sweep_points_and_their_budgets(sweep):
     for key in ("psnr_masked", "miou"):
         assert reference[key] is not None and 0 < reference[key]
         assert finetune[key] is not None
+    baseline = by_label[("baseline", B + C + F)]
+    assert baseline["psnr_masked"] is not None and baseline["miou"] is None  # no segmentation in 3DGS*
     # registration-only points: no masked PSNR, whole time marked as derived from the reference
     views = by_label[("virtual_views", 9)]
     assert views["psnr_masked"] is None and views["whole_time"] == "reference with this stage's time"

@@ -5,6 +5,7 @@ reports the wall time of the stage it changes and of the whole run, and the accu
 test-view PSNR, test-view segmentation mIoU and mean registration rotation error (all from the same
 evaluation ``ns-eval`` runs). Sweeps and how each point is trained:
 
+* ``baseline``: the 3DGS* baseline with the reference's total iterations (what the method must beat);
 * ``base`` (base 3DGS* iterations) and ``res`` (image resolution): whole runs from scratch (the base
   learning-rate schedule depends on its length, and another resolution is another scene);
 * ``contrastive`` (paper: 1k vs 5k): resumed from the reference's checkpoint at the end of the base stage;
@@ -35,7 +36,7 @@ import torch
 
 from splatreplace_ns.bench.scenes import cached_scene
 
-SWEEPS = ("base", "contrastive", "finetune", "virtual_views", "matcher", "res")
+SWEEPS = ("baseline", "base", "contrastive", "finetune", "virtual_views", "matcher", "res")
 VIEW_GRIDS = {9: (3, 3), 25: (5, 5), 49: (7, 7)}
 """Virtual views per instance → (azimuths, elevations)."""
 
@@ -64,7 +65,8 @@ class BenchTradeoffConfig:
     finetune_iterations: int = 800
     """Fine-tuning iterations of the reference run (the paper's "7k")."""
     sweeps: Tuple[str, ...] = SWEEPS
-    """Which knobs to sweep: base, contrastive, finetune, virtual_views, matcher, res."""
+    """Which knobs to sweep: baseline (3DGS* with the same total iterations), base, contrastive, finetune,
+    virtual_views, matcher, res."""
     base_values: Tuple[int, ...] = (500, 2000)
     """Other base iteration counts."""
     contrastive_values: Tuple[int, ...] = (2500,)
@@ -230,6 +232,16 @@ def run_tradeoff_bench(cfg: BenchTradeoffConfig) -> Dict:
     n_sources = max(1, int(reference.get("registration_attempts") or 0))
     del reference_trainer
 
+    if "baseline" in cfg.sweeps:
+        config = make_trainer_config(data, out, B + C + F, experiment_name="baseline", progress=True)
+        trainer, marks = _train(config, {})
+        seconds = marks["end"] - marks["start"]
+        accuracy = _accuracy(trainer.pipeline)
+        points.append({"sweep": "baseline", "value": B + C + F, "iterations": {"base": B + C + F, "contrastive": 0, "finetune": 0},
+                       "res": cfg.res, "stage_time_s": seconds, "whole_time_s": seconds, "times": {"base": seconds},
+                       **accuracy})
+        del trainer
+
     if "base" in cfg.sweeps:
         for b in cfg.base_values:
             trainer, point, _ = whole_run(f"base_{b}", "base", b, cfg.res, b)
@@ -359,7 +371,7 @@ def write_pareto_plot(result: Dict, path: Path, size: Tuple[int, int] = (1200, 5
 
     W, H = size
     canvas = np.full((H, W, 3), 255, np.uint8)
-    colours = {"reference": (0, 0, 0), "base": (180, 80, 0), "contrastive": (0, 140, 0), "finetune": (0, 0, 200),
+    colours = {"reference": (0, 0, 0), "baseline": (60, 60, 200), "base": (180, 80, 0), "contrastive": (0, 140, 0), "finetune": (0, 0, 200),
                "virtual_views": (160, 0, 160), "matcher": (0, 140, 200), "res": (120, 120, 0)}
     panels = [
         ("masked PSNR (dB) vs whole-run time (s)", "whole_time_s", "psnr_masked", True),
