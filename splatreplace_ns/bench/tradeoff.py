@@ -406,7 +406,10 @@ def write_pareto_plot(result: Dict, path: Path, size: Tuple[int, int] = (1200, 5
             colour = colours.get(p["sweep"], (0, 0, 0))
             centre = to_px(x, y)
             cv2.circle(canvas, centre, 5, colour, -1, cv2.LINE_AA)
-            cv2.putText(canvas, _label(p), (centre[0] + 6, centre[1] - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
+            label = _label(p)
+            width = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
+            x = centre[0] + 6 if centre[0] + 6 + width < x0 + pw else centre[0] - 6 - width  # keep it inside
+            cv2.putText(canvas, label, (x, centre[1] - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
     cv2.putText(canvas, f"splatreplace bench tradeoff --preset {result['preset']} (grey: Pareto front)", (10, H - 12),
                 cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     path = Path(path)
