@@ -26,6 +26,7 @@ import torch
 
 from splatreplace_ns.eval.segmentation import segmentation_scores
 from splatreplace_ns.masks.capture import strip_ground_truth
+from splatreplace_ns.bench.output import write_result_json
 
 NO_MASKED = "a downstream run reported no masked PSNR (no test view shows an instance)"
 
@@ -68,10 +69,7 @@ class BenchMasksConfig:
     def main(self) -> Dict:
         result = run_masks_bench(self)
         print_table(result)
-        if self.json is not None:
-            self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(result, indent=2) + "\n")
-            print(f"wrote {self.json}")
+        write_result_json(result, self.json)
         return result
 
 

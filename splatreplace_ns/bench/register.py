@@ -31,7 +31,6 @@ Gaussians belong to (ground-truth labels from the masks, as above).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import platform
@@ -46,6 +45,7 @@ import torch
 from splatreplace_ns.register.errors import rotation_error_deg, translation_error_rel
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, register_instances
 from splatreplace_ns.segment.gt_labels import labels_from_masks
+from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = ("ours", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp")
 
@@ -93,10 +93,7 @@ class BenchRegisterConfig:
     def main(self) -> Dict:
         result = run_register_bench(self)
         print_table(result)
-        if self.json is not None:
-            self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(_json_safe(result), indent=2) + "\n")
-            print(f"wrote {self.json}")
+        write_result_json(result, self.json)
         return result
 
 
@@ -183,19 +180,6 @@ def match_segments_to_ground_truth(
         gt_id = int(counts.argmax())
         out[seg_id] = (gt_id, float(counts[gt_id]) / float(inside.numel()))
     return out
-
-
-def _json_safe(value: Any) -> Any:
-    """NaN/inf → None (strict JSON), numpy scalars → Python."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(float(value)) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 # ----------------------------------------------------------------------------- scene and model

@@ -15,7 +15,6 @@ inside an instance's ground-truth mesh or within 1 % of its bounding-box diagona
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -29,6 +28,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from splatreplace_ns.eval.segmentation import score_views_from_clicks
+from splatreplace_ns.bench.output import write_result_json
 
 
 @dataclass
@@ -61,10 +61,7 @@ class BenchSegmentConfig:
     def main(self) -> Dict:
         result = run_segment_bench(self)
         print_table(result)
-        if self.json is not None:
-            self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(result, indent=2) + "\n")
-            print(f"wrote {self.json}")
+        write_result_json(result, self.json)
         return result
 
 

@@ -14,7 +14,6 @@ masks), wall time of every run, and the export sizes of ours.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -24,6 +23,7 @@ from typing import Dict, List, Optional, Tuple
 
 import torch
 
+from splatreplace_ns.bench.output import write_result_json
 from splatreplace_ns.bench.scenes import cached_scene
 
 ABLATIONS = ("shared_only", "offsets_only", "no_pose_refinement")
@@ -62,10 +62,7 @@ class BenchTemplateConfig:
     def main(self) -> Dict:
         result = run_template_bench(self)
         print_table(result)
-        if self.json is not None:
-            self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(result, indent=2) + "\n")
-            print(f"wrote {self.json}")
+        write_result_json(result, self.json)
         return result
 
 

@@ -23,7 +23,6 @@ rotation error against registration time).
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -34,6 +33,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from splatreplace_ns.bench.output import write_result_json
 from splatreplace_ns.bench.scenes import cached_scene
 
 SWEEPS = ("baseline", "base", "contrastive", "finetune", "virtual_views", "matcher", "res")
@@ -92,10 +92,7 @@ class BenchTradeoffConfig:
     def main(self) -> Dict:
         result = run_tradeoff_bench(self)
         print_table(result)
-        if self.json is not None:
-            self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(result, indent=2) + "\n")
-            print(f"wrote {self.json}")
+        write_result_json(result, self.json)
         plot = self.plot or (self.json.with_suffix(".png") if self.json else Path(f"benchmarks/results/tradeoff_{self.preset}.png"))
         write_pareto_plot(result, plot)
         print(f"wrote {plot}")

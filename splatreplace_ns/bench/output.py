@@ -1,0 +1,19 @@
+"""Writing a benchmark's result: strict JSON (no NaN, no tensors), folders made as needed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+
+def write_result_json(result: Dict[str, Any], path: Optional[Path]) -> None:
+    """Writes ``result`` to ``path`` (nothing when None) and says where."""
+    if path is None:
+        return
+    from splatreplace_ns.eval.report import json_safe
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(json_safe(result), indent=2, allow_nan=False) + "\n")
+    print(f"wrote {path}")
