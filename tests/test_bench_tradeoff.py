@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig, pareto_front, stage_times, write_pareto_plot
+from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig, gain_per_minute, pareto_front, stage_times, write_pareto_plot
 
 B, C, F = 300, 100, 60
 
@@ -30,6 +30,18 @@ def test_stage_times_split_the_marks():
     assert stage_times({"start": 2.0, "end": 5.0}) == {"total": 3.0}
     # a run resumed at the end of segmentation marks that boundary at its start
     assert stage_times({"start": 2.0, "segmented": 2.0, "end": 5.0}) == {"finetune": 3.0, "total": 3.0}
+
+
+def test_gain_per_minute_against_the_reference():
+    reference = {"whole_time_s": 600.0, "psnr_masked": 20.0, "miou": 0.5, "rot_err_deg_mean": 4.0}
+    longer = {"whole_time_s": 720.0, "psnr_masked": 21.0, "miou": 0.7, "rot_err_deg_mean": 1.0}
+    gain = gain_per_minute(longer, reference)
+    assert gain["psnr_masked_db"] == pytest.approx(0.5) and gain["miou"] == pytest.approx(0.1)
+    assert gain["rot_err_deg"] == pytest.approx(1.5)  # the error fell by 3 degrees in 2 extra minutes
+    shorter = {"whole_time_s": 540.0, "psnr_masked": 19.0, "miou": None, "rot_err_deg_mean": 4.0}
+    gain = gain_per_minute(shorter, reference)
+    assert gain["psnr_masked_db"] == pytest.approx(1.0) and gain["miou"] is None  # a saved minute cost 1 dB
+    assert gain_per_minute(dict(reference), reference)["psnr_masked_db"] is None
 
 
 def _latest_step(run_dir: Path) -> int:
@@ -79,6 +91,7 @@ def test_sweep_points_and_their_budgets(sweep):
     assert views["psnr_masked"] is None and views["whole_time"] == "reference with this stage's time"
     assert views["stage_time_s"] > 0
     assert [s["value"] for s in result["skipped"]] == ["no-such-matcher"]
+    assert "gain_per_minute" not in reference and set(finetune["gain_per_minute"]) == {"psnr_masked_db", "miou", "rot_err_deg"}
 
 
 def test_json_and_plot_are_written(sweep):

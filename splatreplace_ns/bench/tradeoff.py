@@ -138,6 +138,21 @@ def stage_times(marks: Dict[str, float]) -> Dict[str, float]:
     return out
 
 
+def gain_per_minute(point: Dict, reference: Dict) -> Dict[str, Optional[float]]:
+    """What each extra minute of whole-run time buys over the reference (negative: what a saved minute costs).
+
+    Returns:
+        {"psnr_masked_db", "miou", "rot_err_deg"} per minute (rotation error: its decrease), None where a
+        figure is missing or the times are equal.
+    """
+    minutes = (point["whole_time_s"] - reference["whole_time_s"]) / 60.0
+    out: Dict[str, Optional[float]] = {}
+    for key, name, sign in (("psnr_masked", "psnr_masked_db", 1.0), ("miou", "miou", 1.0), ("rot_err_deg_mean", "rot_err_deg", -1.0)):
+        a, b = point.get(key), reference.get(key)
+        out[name] = None if a is None or b is None or abs(minutes) < 1e-9 else sign * (a - b) / minutes
+    return out
+
+
 # ----------------------------------------------------------------------------- runs
 
 
@@ -313,6 +328,11 @@ def run_tradeoff_bench(cfg: BenchTradeoffConfig) -> Dict:
             points.append(point)
             del trainer
 
+    for point in points:
+        if point is not reference:
+            point["gain_per_minute"] = gain_per_minute(point, reference)
+    from splatreplace_ns.eval.report import versions
+
     return {
         "benchmark": "tradeoff",
         "preset": cfg.preset,
@@ -325,6 +345,7 @@ def run_tradeoff_bench(cfg: BenchTradeoffConfig) -> Dict:
         "time_s": {"total": time.perf_counter() - t0},
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
                     "threads": torch.get_num_threads()},
+        "versions": versions(),
     }
 
 
@@ -343,7 +364,8 @@ def print_table(result: Dict) -> None:
     table = Table(title=f"accuracy vs time on '{result['preset']}' (reference: {ref['res']}, {ref['base_iterations']} base + "
                         f"{ref['contrastive_iterations']} contrastive + {ref['finetune_iterations']} fine-tuning iterations, "
                         f"25 virtual views, xfeat)")
-    for col in ("point", "stage time (s)", "whole run (s)", "PSNR masked", "PSNR", "mIoU", "rot. err (°)", "registered"):
+    for col in ("point", "stage time (s)", "whole run (s)", "PSNR masked", "PSNR", "mIoU", "rot. err (°)", "registered",
+                "dB / extra min"):
         table.add_column(col)
 
     def fmt(v, digits):
@@ -353,7 +375,8 @@ def print_table(result: Dict) -> None:
         whole = fmt(p["whole_time_s"], 0) + ("*" if p.get("whole_time") not in (None, "measured") else "")
         registered = "n/a" if p.get("registration_attempts") is None else f"{p['registered']}/{p['registration_attempts']}"
         table.add_row(_label(p), fmt(p["stage_time_s"], 1), whole, fmt(p["psnr_masked"], 2), fmt(p["psnr"], 2),
-                      fmt(p["miou"], 3), fmt(p["rot_err_deg_mean"], 2), registered)
+                      fmt(p["miou"], 3), fmt(p["rot_err_deg_mean"], 2), registered,
+                      fmt((p.get("gain_per_minute") or {}).get("psnr_masked_db"), 2))
     Console().print(table)
     Console().print("* reference run with this point's registration time (registration-only point); "
                     "n/a masked PSNR: not fine-tuned after this registration (see --finetune-registration-points)")
