@@ -78,7 +78,7 @@ def test_masks_from_rendered_features_respects_alpha():
     assert masks.tolist() == [[1, 1, 1], [2, 2, 0]]
 
 
-def test_carving_removes_only_gaussians_hidden_by_instances_in_every_view():
+def test_carving_removes_only_instance_leftovers_hidden_in_every_view():
     W, H = 20, 20
     K = torch.tensor([[20.0, 0, 10], [0, 20.0, 10], [0, 0, 1]])
     views = torch.stack([torch.eye(4), torch.eye(4)])
@@ -86,15 +86,16 @@ def test_carving_removes_only_gaussians_hidden_by_instances_in_every_view():
     means = torch.tensor([
         [0.0, 0.0, 2.0],    # projects into the instance mask in both views
         [0.3, 0.3, 2.0],    # visible background in view 0
-        [0.0, 0.0, -1.0],   # behind both cameras
-        [0.3, 0.3, 5.0],    # behind the rendered surface in both views
+        [0.0, 0.0, -1.0],   # behind both cameras: never near an instance, kept
+        [0.3, 0.3, 5.0],    # behind the rendered surface in both views, inside the mask in view 0
+        [-0.6, -0.6, 5.0],  # behind the rendered surface in both views, never inside a mask: kept
     ])
     masks = torch.zeros(2, H, W, dtype=torch.bool)
     masks[0, 8:12, 8:12] = True
     masks[1, 8:12, 14:17] = True  # the first centre projects to u = 15 there
     depths = torch.full((2, H, W), 2.0)
     remove = carve_mask(means, views, torch.stack([K, K]), W, H, masks, depths)
-    assert remove.tolist() == [True, False, True, True]
+    assert remove.tolist() == [True, False, False, True, False]
     assert carve_mask(torch.zeros(0, 3), views, torch.stack([K, K]), W, H, masks, depths).shape == (0,)
 
 

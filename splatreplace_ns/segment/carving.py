@@ -20,7 +20,11 @@ def carve_mask(
 
     A Gaussian is removed when, in *every* training view, its centre projects inside an instance
     mask, or outside the image, or is not visible (behind the camera, or behind the rendered surface
-    by more than ``depth_tolerance`` relative depth).
+    by more than ``depth_tolerance`` relative depth) — the paper's three conditions — *and* it projects
+    inside an instance mask in at least one view. The last condition is ours: the paper removes residual
+    Gaussians of the instances, and visibility judged against the rendered (expected) depth counts the
+    contributing Gaussians of any fuzzy surface as hidden, so without it carving removed 39 % of the
+    office demo's Gaussians and 59 % of a short-trained tiny scene, most of them far from any instance.
 
     Args:
         means: [N, 3] centres of the background Gaussians.
@@ -34,6 +38,7 @@ def carve_mask(
     """
     N = means.shape[0]
     remove = torch.ones(N, dtype=torch.bool, device=means.device)
+    touches_an_instance = torch.zeros(N, dtype=torch.bool, device=means.device)
     homogeneous = torch.cat([means, torch.ones_like(means[:, :1])], dim=-1)  # [N, 4]
     for view in range(viewmats.shape[0]):  # views are few; Gaussians are vectorised
         cam = homogeneous @ viewmats[view].T  # [N, 4]
@@ -49,4 +54,5 @@ def carve_mask(
         surface = rendered_depths[view][row, col]
         occluded = inside & (surface > 0) & (z > surface * (1.0 + depth_tolerance))
         remove &= (~inside) | in_mask | occluded
-    return remove
+        touches_an_instance |= in_mask
+    return remove & touches_an_instance
