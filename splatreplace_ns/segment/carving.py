@@ -23,8 +23,8 @@ def carve_mask(
     by more than ``depth_tolerance`` relative depth) — the paper's three conditions — *and* it projects
     inside an instance mask in at least one view. The last condition is ours: the paper removes residual
     Gaussians of the instances, and visibility judged against the rendered (expected) depth counts the
-    contributing Gaussians of any fuzzy surface as hidden, so without it carving removed 39 % of the
-    office demo's Gaussians and 59 % of a short-trained tiny scene, most of them far from any instance.
+    contributing Gaussians of any fuzzy surface as hidden: it lowers the share carved from 59 % to 33 % on a
+    short-trained tiny scene and from 39 % to 32 % on the office demo.
 
     Args:
         means: [N, 3] centres of the background Gaussians.
