@@ -6,7 +6,6 @@ identity (a class with one instance must render exactly as before).
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest

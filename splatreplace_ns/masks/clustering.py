@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
-import torch
 
 from splatreplace_ns.masks.lifting import ClickError, LiftedClick
 

@@ -182,7 +182,6 @@ def compose_scene(
             slots.append(torch.full_like(idx, int(instance_slot[i])))
             counts.append(idx.numel())
             kept.append(i)
-    n_bg = background.numel()
     if not kept:
         return ComposedScene(means[background], quats[background], log_scales[background],
                              logit_opacities[background], sh[background], background, torch.zeros_like(background))
