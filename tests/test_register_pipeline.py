@@ -159,3 +159,42 @@ def test_no_virtual_views_uses_given_cameras(tiny):
 def test_bad_config():
     with pytest.raises(ValueError):
         RegistrationConfig(method="mast3r")
+
+
+def test_solid_selects_opaque_gaussians_with_fallback():
+    n = 10
+    inst = InstanceGaussians(torch.zeros(n, 3), torch.zeros(n, 4), torch.ones(n, 3),
+                             torch.tensor([0.9, 0.6, 0.5, 0.1, 0.2, 0.0, 0.3, 0.4, 0.45, 0.55]), torch.zeros(n, 3))
+    keep = inst.solid(0.5, min_points=3)
+    assert keep.tolist() == [True, True, True] + [False] * 6 + [True]
+    assert inst.solid(0.5, min_points=5).all()  # only 4 opaque ones: use every Gaussian
+
+
+def test_faint_off_surface_gaussians_do_not_pull_icp(tiny):
+    """Faint Gaussians a few centimetres off the surface (as a short training leaves them) are left out of ICP
+    and of the scores, so the pose is still recovered; the renders still include them."""
+    src = replace(tiny["gaussians"][1], id=1)
+    rng = np.random.default_rng(0)
+    n = 1500
+    pick = rng.choice(src.num_gaussians, n)
+    offsets = rng.normal(size=(n, 3))
+    offsets *= rng.uniform(0.03, 0.06, (n, 1)) / np.linalg.norm(offsets, axis=1, keepdims=True)
+    fuzz = torch.as_tensor(src.centres()[pick] + offsets, dtype=torch.float32)
+
+    def cat(a, b):
+        return torch.cat([torch.as_tensor(a), torch.as_tensor(b)])
+
+    faint = InstanceGaussians(
+        means=cat(src.means, fuzz), quats=cat(src.quats, torch.as_tensor(src.quats)[pick]),
+        scales=cat(src.scales, torch.as_tensor(src.scales)[pick]), opacities=cat(src.opacities, torch.full((n,), 0.1)),
+        colors=cat(src.colors, torch.as_tensor(src.colors)[pick]), id=1,
+    )
+    cfg = RegistrationConfig(**FAST)
+    res = register_instance(faint, replace(tiny["gaussians"][2], id=2), cfg)
+    assert res.success, res.message
+    rot_err, t_err = pose_errors(res.transform, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], "crate")
+    print(f"with {n} faint Gaussians: rot {rot_err:.3f} deg, trans {100 * t_err:.3f} %, {res.message}")
+    assert rot_err < 1.0 and t_err < 0.01, res.message
+    everything = register_instance(faint, replace(tiny["gaussians"][2], id=2), replace(cfg, min_opacity=0.0))
+    print(f"ICP and scores on every Gaussian: {everything.message}")
+    assert everything.fitness < res.fitness - 0.1  # the faint layer, scored too, dilutes the fitness

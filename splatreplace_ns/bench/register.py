@@ -76,9 +76,6 @@ class BenchRegisterConfig:
     """Relative depth margin of the visibility test when labelling Gaussians from the masks (wider than
     carving's 0.02: at silhouettes the rendered expected depth of a short-trained model lies in front of the
     surface Gaussians, and a tight margin leaves them unlabelled)."""
-    min_opacity: float = 0.0
-    """Register only the Gaussians of an instance with opacity above this (0: all of them, as the method
-    does; a diagnostic knob: low-opacity Gaussians sit off the surface and pull ICP)."""
     seg_run: Optional[Path] = None
     """config.yml of a finished splat-replace run with segmentation: also register its segmented instances."""
     seg_rows: Optional[Tuple[str, ...]] = None
@@ -312,7 +309,7 @@ def label_gaussians_from_ground_truth(pipeline, depth_tolerance: float) -> torch
 
 
 def instance_gaussians(
-    model, labels: torch.Tensor, ids, sh_degree: Optional[int], min_opacity: float = 0.0
+    model, labels: torch.Tensor, ids, sh_degree: Optional[int]
 ) -> Dict[int, InstanceGaussians]:
     """The Gaussians of each labelled instance, activated (linear scales, opacities in [0, 1]), SH colours.
 
@@ -321,7 +318,6 @@ def instance_gaussians(
         labels: [N] instance per Gaussian.
         ids: instance ids to extract.
         sh_degree: SH degree the model renders with (None: plain RGB from sigmoid(features_dc)).
-        min_opacity: keep only Gaussians with a larger opacity (0 keeps all).
     """
     with torch.no_grad():
         means = model.means.detach().cpu()
@@ -336,7 +332,7 @@ def instance_gaussians(
     labels = labels.cpu()
     out = {}
     for iid in ids:
-        keep = (labels == int(iid)) & (opacities > min_opacity)
+        keep = labels == int(iid)
         out[int(iid)] = InstanceGaussians(
             means[keep], quats[keep], scales[keep], opacities[keep], colors[keep], sh_degree=sh_degree, id=int(iid)
         )
@@ -548,7 +544,7 @@ def run_segmentation_rows(cfg: BenchRegisterConfig, rows: List[Tuple[str, Regist
     matched = match_segments_to_ground_truth(seg_labels, gt_labels)
     classes = {int(inst["id"]): str(inst["class"]) for inst in model.instances}
     gt_of = {iid: matched.get(iid, (None, 0.0))[0] for iid in classes}
-    instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline), cfg.min_opacity)
+    instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline))
     result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation")
     hit = {g for g in gt_of.values() if g is not None}
     return {
@@ -570,7 +566,7 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     rows = row_configs(cfg, tuple(cfg.rows))
     pipeline = scene.pipeline
     ids = sorted(scene.ground_truth)
-    instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline), cfg.min_opacity)
+    instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline))
     classes = {i: scene.ground_truth[i].cls for i in ids}
     result_rows = run_rows(
         rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks"
@@ -593,7 +589,7 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     result["time_s"] = {**scene.time_s, "total": time.perf_counter() - t_start}
     result["parameters"] = {
         "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
-        "depth_tolerance": cfg.depth_tolerance, "min_opacity": cfg.min_opacity, "rows": list(cfg.rows),
+        "depth_tolerance": cfg.depth_tolerance, "rows": list(cfg.rows),
         "model_reused": scene.reused,
         "run": str(scene.config_path), "sh_degree": model_sh_degree(pipeline),
         "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)},

@@ -70,9 +70,6 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     contrastive: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    registration_min_opacity: float = 0.5
-    """Register instances on their Gaussians with at least this opacity (the transform then moves all of them):
-    faint Gaussians are poorly placed, and dropping them halved the chair errors on office (bench register)."""
 
     @property
     def total_iterations(self) -> int:
@@ -301,19 +298,15 @@ class SplatReplacePipeline(VanillaPipeline):
 
     # ------------------------------------------------------------ registration and shared templates
     @torch.no_grad()
-    def instance_gaussians(self, min_opacity: float = 0.0) -> Dict[int, InstanceGaussians]:
-        """The segmented instances as Gaussian sets (world frame, activated parameters); with ``min_opacity``,
-        only their Gaussians at least that opaque (an instance with fewer than 50 such keeps all of them)."""
+    def instance_gaussians(self) -> Dict[int, InstanceGaussians]:
+        """The segmented instances as Gaussian sets (world frame, activated parameters)."""
         model = self.model
         labels = model.instance_labels.to(model.means.device)
-        opaque = torch.sigmoid(model.opacities.detach()).reshape(-1) >= min_opacity
         sh = torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1).detach()
         sh_degree = model.config.sh_degree if model.config.sh_degree > 0 else None
         out = {}
         for inst in model.instances:
             sel = labels == int(inst["id"])
-            if int((sel & opaque).sum()) >= 50:
-                sel = sel & opaque
             colors = sh[sel] if sh_degree is not None else torch.sigmoid(model.features_dc.detach()[sel])
             out[int(inst["id"])] = InstanceGaussians(
                 means=model.means.detach()[sel], quats=model.quats.detach()[sel],
@@ -327,7 +320,7 @@ class SplatReplacePipeline(VanillaPipeline):
         name and those instances stay as they are."""
         start = time.perf_counter()
         model = self.model
-        instances = self.instance_gaussians(self.config.registration_min_opacity)
+        instances = self.instance_gaussians()
         classes = {int(i["id"]): i["class"] for i in model.instances}
         CONSOLE.log(f"[bold]registration: {len(instances)} instances in {len(set(classes.values()))} classes")
         results = self.datamanager.register_instances(instances, classes, self.config.registration)
