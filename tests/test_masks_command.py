@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -112,3 +113,155 @@ def test_splat_replace_trains_on_the_written_masks(base_run, tmp_path):
     model = trainer.pipeline.model
     assert model.stage == "segmented"
     assert len(model.instances) >= 1
+
+
+def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
+    """`splatreplace masks --viewer`: clicks fired through viser's pointer callback (real camera rays through the
+    ground-truth click pixels) become pixel clicks on the clicked crates; bad clicks change nothing; the
+    written clicks.json makes masks that match the ground truth."""
+    import socket
+    import types
+
+    import torch
+    import viser
+    from viser._scene_handles import ScenePointerEvent
+
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+    from splatreplace_ns.masks.base import frame_cameras, load_base
+    from splatreplace_ns.masks.command import mask_click_controls
+    from splatreplace_ns.masks.viewer_clicks import write_clicks_json
+
+    scene, capture, report = base_run
+    data = tmp_path / "viewer_capture"
+    shutil.copytree(capture, data)
+    cfg = MasksCommand(data, load_config=report["config"], viewer=True)
+    base = load_base(report["config"])
+    frames = frame_cameras(data / "transforms.json", base.dataparser_transform, base.dataparser_scale)
+    controls = mask_click_controls(base.model, frames, cfg)
+    gt_clicks = json.loads((scene / "clicks.json").read_text())
+    gt_meta = json.loads((scene / "transforms.json").read_text())
+    gt_mask_of = {Path(f["file_path"]).name: scene / f["instance_mask_path"] for f in gt_meta["frames"]}
+
+    def ray_through(file_path, u, v):
+        camera = frames.cameras[frames.index_of(file_path, "test")]
+        c2w = camera.camera_to_worlds  # OpenGL
+        ray = torch.tensor([(u + 0.5 - float(camera.cx)) / float(camera.fx), -(v + 0.5 - float(camera.cy)) / float(camera.fy), -1.0])
+        return c2w[:, 3], c2w[:, :3] @ (ray / ray.norm())
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    sock.close()
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    try:
+        controls.viewer_control._setup(types.SimpleNamespace(viser_server=server))
+
+        def fire(origin, direction):
+            controls.arm_click()
+            callback = server.scene._scene_pointer_cb
+            assert callback is not None, "'Click an instance' did not register a click callback"
+            callback(ScenePointerEvent(
+                client=None, client_id=0, event_type="click",
+                ray_origin=tuple((origin * VISER_NERFSTUDIO_SCALE_RATIO).tolist()),
+                ray_direction=tuple(direction.tolist()), screen_pos=((0.5, 0.5),),
+            ))
+            assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"
+
+        for k, gt in enumerate(gt_clicks):
+            controls.class_name.value = gt["class"]
+            fire(*ray_through(gt["file_path"], *gt["xy"]))
+            assert len(controls.clicks) == k + 1, controls.status.value
+            click = controls.clicks[-1]
+            # the pixel click lies on the clicked crate in the frame it was moved to (ground-truth mask)
+            mask = cv2.imread(str(gt_mask_of[Path(click.file_path).name]), cv2.IMREAD_UNCHANGED)
+            assert mask[int(click.xy[1]), int(click.xy[0])] == gt["id"], (click, gt)
+            assert click.cls == gt["class"]
+
+        # the first crate again, from the same pixel: the same instance twice is refused and nothing changes
+        before = list(controls.clicks)
+        fire(*ray_through(gt_clicks[0]["file_path"], *gt_clicks[0]["xy"]))
+        assert controls.clicks == before and "same object" in controls.status.value, controls.status.value
+        # a ray into empty space (from a camera, pointing away from the scene)
+        origin, direction = ray_through(gt_clicks[0]["file_path"], *gt_clicks[0]["xy"])
+        fire(origin, -direction)
+        assert controls.clicks == before and "nothing opaque" in controls.status.value, controls.status.value
+        controls.undo()
+        assert len(controls.clicks) == len(gt_clicks) - 1
+        controls.clicks = before
+    finally:
+        server.stop()
+
+    path = data / "clicks.json"
+    backup = write_clicks_json(path, controls.clicks)
+    assert backup is not None and backup.read_bytes() == (capture / "clicks.json").read_bytes()
+    make_masks(MasksCommand(data, load_config=report["config"]))
+    ious = mask_iou(scene, data)
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
+
+
+def test_viewer_controls_refuse_to_confirm_nothing():
+    from splatreplace_ns.masks.viewer_clicks import MaskClickControls
+
+    controls = MaskClickControls(lambda *a: None, lambda clicks: None)
+    controls.confirm()
+    assert "at least one" in controls.status.value and not controls._confirmed.is_set()
+    controls.undo()
+    assert controls.status.value == "nothing to undo"
+
+
+def test_masks_command_with_the_viewer(base_run, tmp_path, monkeypatch):
+    """`splatreplace masks DATA --viewer` end to end: nerfstudio's viewer starts on the base model and finds the
+    controls; clicks made there write clicks.json and the masks; nothing else is needed."""
+    import socket
+    import threading
+    import time
+
+    import torch
+
+    from nerfstudio.viewer.viewer_elements import ViewerClick
+    from splatreplace_ns.masks import command
+
+    scene, capture, report = base_run
+    data = tmp_path / "viewer_run"
+    shutil.copytree(capture, data)
+    (data / "clicks.json").unlink()  # a capture without clicks
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    sock.close()
+    made = []
+    real = command.mask_click_controls
+    monkeypatch.setattr(command, "mask_click_controls", lambda *a: made.append(real(*a)) or made[-1])
+    result = {}
+
+    def run():
+        try:
+            result["report"] = make_masks(MasksCommand(data, load_config=report["config"], viewer=True, viewer_port=port))
+        except BaseException as exc:  # surfaced below
+            result["error"] = exc
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    deadline = time.time() + 300
+    while not (made and made[0].viewer_running) and worker.is_alive() and time.time() < deadline:
+        time.sleep(0.2)
+    assert made and made[0].viewer_running, result.get("error", "the viewer did not pick up the click controls")
+    controls = made[0]
+    base = command.load_base(report["config"])
+    frames = command.frame_cameras(data / "transforms.json", base.dataparser_transform, base.dataparser_scale)
+    gt_clicks = json.loads((scene / "clicks.json").read_text())
+    for gt in gt_clicks:
+        camera = frames.cameras[frames.index_of(gt["file_path"], "test")]
+        u, v = gt["xy"]
+        ray = torch.tensor([(u + 0.5 - float(camera.cx)) / float(camera.fx), -(v + 0.5 - float(camera.cy)) / float(camera.fy), -1.0])
+        direction = camera.camera_to_worlds[:, :3] @ (ray / ray.norm())
+        controls.class_name.value = gt["class"]
+        assert controls.on_click(ViewerClick(tuple(camera.camera_to_worlds[:, 3].tolist()), tuple(direction.tolist()), (0.5, 0.5))), controls.status.value
+    controls.confirm()
+    worker.join(timeout=300)
+    assert "report" in result, result.get("error")
+    written = json.loads((data / "clicks.json").read_text())
+    assert [c["class"] for c in written] == [c["class"] for c in gt_clicks]
+    assert result["report"]["instances"] == [{"id": k + 1, "class": c["class"]} for k, c in enumerate(gt_clicks)]
+    ious = mask_iou(scene, data)
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious

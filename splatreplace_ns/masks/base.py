@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional
+from typing import Any, List, Optional
 
 import numpy as np
 import torch
@@ -103,6 +103,8 @@ class BaseModel:
     dataparser_scale: float
     config_path: Path
     """config.yml of the run (reuse it with ``--load-config``)."""
+    pipeline: Any = None
+    """The run's pipeline (what nerfstudio's viewer shows)."""
 
 
 def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: Optional[str] = None) -> BaseModel:
@@ -117,7 +119,7 @@ def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: O
     trainer.pipeline.model.eval()
     return BaseModel(
         trainer.pipeline.model, outputs.dataparser_transform.clone(), float(outputs.dataparser_scale),
-        config.get_base_dir() / "config.yml",
+        config.get_base_dir() / "config.yml", trainer.pipeline,
     )
 
 
@@ -131,4 +133,6 @@ def load_base(config_path: Path) -> BaseModel:
     _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
     outputs = pipeline.datamanager.train_dataparser_outputs
     pipeline.model.eval()
-    return BaseModel(pipeline.model, outputs.dataparser_transform.clone(), float(outputs.dataparser_scale), config_path)
+    return BaseModel(
+        pipeline.model, outputs.dataparser_transform.clone(), float(outputs.dataparser_scale), config_path, pipeline
+    )

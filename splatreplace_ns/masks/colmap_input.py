@@ -14,8 +14,8 @@ from typing import Dict, Optional
 import numpy as np
 
 from splatreplace_ns.datamanager.dataparser import DatasetFormatError
+from splatreplace_ns.register.virtual_cameras import OPENCV_TO_OPENGL
 
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 SPARSE_CANDIDATES = ("sparse/0", "colmap/sparse/0", "sparse")
 
 # COLMAP camera model → nerfstudio camera_model and how its parameters map to transforms.json keys.

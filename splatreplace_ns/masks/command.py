@@ -1,7 +1,7 @@
 """``splatreplace masks DATA``: instance masks for a capture from one click per instance.
 
-Trains (or reuses, ``--load-config``) the base 3DGS* stage, lifts each click of ``clicks.json`` to 3D
-with the rendered depth, finds the clicked instances in 3D (supporting planes removed, Gaussian centres
+Trains (or reuses, ``--load-config``) the base 3DGS* stage, lifts each click of ``clicks.json`` (or each
+click made in nerfstudio's viewer with ``--viewer``, then written to clicks.json) to 3D with the rendered depth, finds the clicked instances in 3D (supporting planes removed, Gaussian centres
 clustered), renders every instance into every frame and cleans the borders (``geometric``), or prompts
 a SAM-style ONNX pair with the projected clicks and the instance's box (``onnx-sam``). Writes
 ``masks/NNNN.png`` for every frame and the ``instance_mask_path`` / ``instances`` entries of
@@ -15,7 +15,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional
+from typing import Callable, Dict, List, Literal, Optional
 
 import cv2
 import numpy as np
@@ -24,11 +24,18 @@ import tyro
 from typing_extensions import Annotated
 
 from splatreplace_ns.masks.base import BaseModel, FrameCameras, frame_cameras, load_base, train_base
-from splatreplace_ns.masks.clustering import ClusteringConfig, cluster_gaussians, instance_ids
+from splatreplace_ns.masks.clustering import Clustering, ClusteringConfig, cluster_gaussians, instance_ids
 from splatreplace_ns.masks.colmap_input import colmap_to_transforms
 from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, project_points, view_and_intrinsics, visible_by_depth
 from splatreplace_ns.masks.onnx_sam import OnnxSam, sam_labels
 from splatreplace_ns.masks.render import BorderConfig, front_to_back_order, labels_from_weights, one_hot_labels, render_instance_masks
+from splatreplace_ns.masks.viewer_clicks import (
+    MaskClickControls,
+    pixel_click_for_point,
+    render_frames,
+    surface_point_on_ray,
+    write_clicks_json,
+)
 from splatreplace_ns.masks.writer import write_dataset_masks
 from splatreplace_ns.segment.clicks import Click, load_clicks
 
@@ -57,6 +64,11 @@ class MasksCommand:
     border: BorderConfig = field(default_factory=BorderConfig)
     min_alpha: float = 0.5
     """A click must land on a pixel at least this opaque in the base model's render."""
+    viewer: bool = False
+    """Click the instances in nerfstudio's viewer on the base model instead of reading clicks.json; the clicks
+    are written to clicks.json (an existing one is kept as clicks.json.before-viewer)."""
+    viewer_port: int = 7007
+    """Port of the viewer (with --viewer)."""
 
     def main(self) -> Dict:
         report = make_masks(self)
@@ -112,12 +124,14 @@ def lift_clicks(model, frames: FrameCameras, clicks: List[Click], min_alpha: flo
 
 
 def instance_labels_of_gaussians(
-    model, lifted: List[LiftedClick], cfg: ClusteringConfig
+    model, lifted: List[LiftedClick], cfg: ClusteringConfig, clustering: Optional[Clustering] = None
 ) -> torch.Tensor:
-    """[N] instance id per Gaussian (click k → id k + 1, 0 = background)."""
+    """[N] instance id per Gaussian (click k → id k + 1, 0 = background); ``clustering`` of the model's
+    Gaussians is computed here unless given (the viewer checks every click against one clustering)."""
     means = model.means.detach().cpu().double().numpy()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    clustering = cluster_gaussians(means, opacities, cfg)
+    if clustering is None:
+        clustering = cluster_gaussians(means, opacities, cfg)
     return torch.from_numpy(instance_ids(lifted, means, opacities, gaussian_colours(model), clustering, cfg))
 
 
@@ -148,15 +162,77 @@ def sam_view_labels(
     return sam_labels(sam, image, rendered, order, prompts)
 
 
+def click_checker(model, frames: FrameCameras, cfg: MasksCommand) -> Callable[[List[Click]], None]:
+    """A function that raises ClickError for a list of clicks that cannot make masks (background, a
+    supporting plane, one instance clicked twice); the model's Gaussians are clustered once."""
+    means = model.means.detach().cpu().double().numpy()
+    opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
+    clustering = cluster_gaussians(means, opacities, cfg.clustering)
+
+    def check(clicks: List[Click]) -> None:
+        instance_labels_of_gaussians(model, lift_clicks(model, frames, clicks, cfg.min_alpha), cfg.clustering, clustering)
+
+    return check
+
+
+def mask_click_controls(model, frames: FrameCameras, cfg: MasksCommand) -> MaskClickControls:
+    """The viewer controls, wired to the base model: a click ray → its surface point → a pixel click in the
+    frame that sees it best, checked against the clicks made so far."""
+    renders = render_frames(model, frames)
+    focal = float(frames.cameras.fx.median())
+
+    def to_click(origin, direction, cls: str, index: int) -> Click:
+        source = f"viewer click {index + 1}"
+        point = surface_point_on_ray(model, origin, direction, focal, cfg.min_alpha, source)
+        return pixel_click_for_point(point, direction, renders, frames.file_paths, cls, index, cfg.min_alpha, source)
+
+    return MaskClickControls(to_click, click_checker(model, frames, cfg))
+
+
+def clicks_from_viewer(base: BaseModel, frames: FrameCameras, cfg: MasksCommand) -> List[Click]:
+    """Opens nerfstudio's viewer on the base model and returns the clicks made there, also written to
+    clicks.json (so that ``ns-train splat-replace`` selects the same instances)."""
+    import threading
+
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.utils.rich_utils import CONSOLE
+    from nerfstudio.viewer.viewer import Viewer
+
+    pipeline = base.pipeline
+    controls = mask_click_controls(base.model, frames, cfg)
+    # the segmentation stage's own "Select instances" controls do not apply to a base model
+    if hasattr(pipeline, "selection_controls"):
+        del pipeline.selection_controls
+    pipeline.mask_click_controls = controls
+    viewer = Viewer(
+        ViewerConfig(websocket_port=cfg.viewer_port, num_rays_per_chunk=1 << 15),
+        log_filename=Path(base.config_path).parent / "viewer_log_filename.txt",
+        datapath=Path(cfg.data), pipeline=pipeline, train_lock=threading.Lock(),
+    )
+    viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed")
+    viewer.update_scene(step=0)
+    for line in viewer.viewer_info:
+        CONSOLE.print(line)
+    CONSOLE.print("[bold]Press 'Click an instance' and click it, once per instance; then 'Write masks'")
+    try:
+        clicks = controls.wait_for_confirm()
+    finally:
+        viewer.viser_server.stop()
+    path = cfg.clicks or Path(cfg.data) / "clicks.json"
+    backup = write_clicks_json(path, clicks)
+    CONSOLE.print(f"wrote {len(clicks)} clicks to {path}" + (f" (previous file kept as {backup})" if backup else ""))
+    return clicks
+
+
 def make_masks(cfg: MasksCommand) -> Dict:
     """Everything ``splatreplace masks`` does; returns a report (instances, timings, the base run's config)."""
     data = Path(cfg.data)
     transforms = _transforms(data)
-    clicks = _clicks(cfg)
     sam = OnnxSam(cfg.sam_encoder, cfg.sam_decoder) if cfg.backend == "onnx-sam" else None
+    clicks = None if cfg.viewer else _clicks(cfg)  # bad clicks are reported before the base stage trains
     meta = json.loads(transforms.read_text())
     names = {Path(f["file_path"]).name for f in meta.get("frames", [])}
-    for click in clicks:
+    for click in clicks or []:
         if Path(click.file_path).name not in names:
             raise ClickError(f"click {click.index} ({click.file_path}): not a frame of {transforms}")
 
@@ -167,6 +243,8 @@ def make_masks(cfg: MasksCommand) -> Dict:
     model.eval()
     frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale)
 
+    if clicks is None:
+        clicks = clicks_from_viewer(base, frames, cfg)
     t0 = time.perf_counter()
     lifted = lift_clicks(model, frames, clicks, cfg.min_alpha)
     instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering)

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from gsplat.strategy.ops import remove as remove_gaussians
 
-from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.splatfacto import get_viewmat
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
@@ -29,13 +29,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig
-from splatreplace_ns.register.virtual_cameras import look_at
 from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.segment.clicks import Click, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import masks_from_rendered_features
 from splatreplace_ns.template.build import build_templates
+from splatreplace_ns.viewer.rays import ray_camera
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
 
 
@@ -76,9 +76,6 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
         if self.contrastive_iterations <= 0:  # no segmentation, nothing to replace
             return self.base_iterations
         return self.base_iterations + self.contrastive_iterations + self.finetune_iterations
-
-
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 class SplatReplacePipeline(VanillaPipeline):
@@ -190,23 +187,13 @@ class SplatReplacePipeline(VanillaPipeline):
 
     @torch.no_grad()
     def query_from_ray(self, origin, direction) -> torch.Tensor:
-        """Rendered feature along a viewer click ray.
-
-        Renders a small pinhole view whose centre pixel is centred on the ray, with the focal length of
-        the training cameras so that features blend as they did in training.
-        """
-        origin = np.asarray(origin, dtype=np.float64)
-        viewmat = look_at(origin, origin + np.asarray(direction, dtype=np.float64))  # world→camera, OpenCV
-        c2w = torch.from_numpy(np.linalg.inv(viewmat) @ OPENCV_TO_OPENGL).float()[:3]
-        train_cameras = self.datamanager.train_dataset.cameras
-        focal = float(train_cameras.fx.median())
-        size, centre = 33, 16
-        camera = Cameras(
-            camera_to_worlds=c2w[None], fx=focal, fy=focal, cx=centre + 0.5, cy=centre + 0.5, width=size, height=size,
-            camera_type=CameraType.PERSPECTIVE,
-        ).to(self.device)
+        """Rendered feature along a viewer click ray (a small view centred on the ray, with the training
+        cameras' focal length so that features blend as they did in training)."""
+        size = 33
+        focal = float(self.datamanager.train_dataset.cameras.fx.median())
+        camera = ray_camera(origin, direction, focal, size).to(self.device)
         features, alpha, _ = self.model.render_features(camera)
-        return query_at_pixel(features, alpha, centre, centre, "viewer click", self.config.segmentation.min_alpha)
+        return query_at_pixel(features, alpha, size // 2, size // 2, "viewer click", self.config.segmentation.min_alpha)
 
     def should_wait_for_viewer(self) -> bool:
         mode = self.config.segmentation.interactive

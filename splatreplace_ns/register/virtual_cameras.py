@@ -13,6 +13,8 @@ import math
 import numpy as np
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
+# OpenCV camera axes (x right, y down, z forward) → OpenGL (x right, y up, z back), nerfstudio's convention.
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def fit_sphere(points: np.ndarray, percentile: float = 98.0) -> tuple[np.ndarray, float]:

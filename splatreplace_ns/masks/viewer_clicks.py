@@ -1,0 +1,212 @@
+"""``splatreplace masks --viewer``: one click per instance in nerfstudio's viewer, on the base model.
+
+A click in the 3D view is a ray. The base model's rendered depth along the ray gives the clicked surface
+point; the point becomes a pixel click in the training frame that sees it best (visible by rendered depth,
+viewed from the direction closest to the click's). The clicks are then written to ``clicks.json`` and
+used exactly like hand-written ones, by ``splatreplace masks`` now and by the segmentation stage of
+``ns-train splat-replace`` later, so the same clicks make the masks and select the instances.
+Every click is checked at once (background, a supporting plane, an instance clicked twice) and a bad one
+only changes the status message.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, List, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerClick, ViewerControl, ViewerText
+
+from splatreplace_ns.masks.base import FrameCameras
+from splatreplace_ns.masks.lifting import ClickError, project_points, view_and_intrinsics, visible_by_depth
+from splatreplace_ns.segment.clicks import Click
+from splatreplace_ns.viewer.rays import ray_camera
+
+
+@dataclass
+class FrameRenders:
+    """The base model's depth and opacity in every frame (one entry per frame; sizes may differ)."""
+
+    viewmats: List[torch.Tensor]
+    """[4, 4] world→camera (OpenCV) per frame."""
+    Ks: List[torch.Tensor]
+    """[3, 3] per frame."""
+    depths: List[torch.Tensor]
+    """[H, W, 1] rendered z-depth per frame."""
+    alphas: List[torch.Tensor]
+    """[H, W, 1] rendered opacity per frame."""
+
+
+@torch.no_grad()
+def render_frames(model, frames: FrameCameras) -> FrameRenders:
+    """Depth and opacity of the base model in every frame (CPU tensors)."""
+    ones = torch.ones(model.num_points, 1, device=model.device)
+    out = FrameRenders([], [], [], [])
+    for index in range(len(frames.file_paths)):
+        camera = frames.cameras[index : index + 1].to(model.device)
+        _, alpha, depth = model.render_features(camera, ones)
+        viewmat, K, _, _ = view_and_intrinsics(camera)
+        out.viewmats.append(viewmat.cpu())
+        out.Ks.append(K.cpu())
+        out.depths.append(depth.cpu())
+        out.alphas.append(alpha.cpu())
+    return out
+
+
+@torch.no_grad()
+def surface_point_on_ray(
+    model, origin: Sequence[float], direction: Sequence[float], focal: float, min_alpha: float, source: str
+) -> torch.Tensor:
+    """[3] the first opaque surface of the base model along a ray.
+
+    Raises:
+        ClickError: nothing opaque along the ray (empty space, sky).
+    """
+    size = 33
+    camera = ray_camera(origin, direction, focal, size).to(model.device)
+    _, alpha, depth = model.render_features(camera, torch.ones(model.num_points, 1, device=model.device))
+    centre = size // 2
+    a, d = float(alpha[centre, centre, 0]), float(depth[centre, centre, 0])
+    if a < min_alpha or not np.isfinite(d) or d <= 0:
+        raise ClickError(f"{source}: nothing opaque is rendered along this ray (empty space or sky); click on an object")
+    unit = np.asarray(direction, dtype=np.float64)
+    unit = unit / np.linalg.norm(unit)
+    return torch.tensor(np.asarray(origin, dtype=np.float64) + d * unit, dtype=torch.float32)
+
+
+def pixel_click_for_point(
+    point: torch.Tensor, direction: Sequence[float], renders: FrameRenders, file_paths: Sequence[str], cls: str,
+    index: int, min_alpha: float, source: str,
+) -> Click:
+    """The pixel click that stands for a 3D point: in the frame that sees the point (inside the image, not
+    behind the rendered surface, opaque there) from the direction closest to ``direction``.
+
+    Args:
+        point: [3] surface point (normalised world frame).
+        direction: [3] the click's viewing direction.
+        renders: the base model's depth and opacity per frame.
+        file_paths: frame file paths, in the order of ``renders``.
+    Raises:
+        ClickError: no frame sees the point.
+    """
+    view_dir = np.asarray(direction, dtype=np.float64)
+    view_dir = view_dir / np.linalg.norm(view_dir)
+    best, best_score = None, -np.inf
+    for frame, (viewmat, K, depth, alpha) in enumerate(zip(renders.viewmats, renders.Ks, renders.depths, renders.alphas)):
+        points = point[None].to(viewmat.dtype)
+        if not bool(visible_by_depth(points, viewmat, K, depth, alpha, min_alpha=min_alpha)[0]):
+            continue
+        uv, _ = project_points(points, viewmat, K)
+        col, row = int(np.floor(float(uv[0, 0]))), int(np.floor(float(uv[0, 1])))
+        if float(alpha[row, col, 0]) < min_alpha:
+            continue
+        centre = (-viewmat[:3, :3].T @ viewmat[:3, 3]).double().numpy()
+        ray = point.double().numpy() - centre
+        score = float(ray @ view_dir) / max(float(np.linalg.norm(ray)), 1e-12)
+        if score > best_score + 1e-9:  # ties keep the first frame: the same click always gives the same pixel
+            best, best_score = (frame, col, row), score
+    if best is None:
+        raise ClickError(f"{source}: no training frame sees this point; click on an object the capture saw")
+    frame, col, row = best
+    return Click(index, str(file_paths[frame]), (float(col), float(row)), cls)
+
+
+def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
+    """Writes ``[{"file_path", "xy", "class"}, ...]`` atomically; an existing file is kept beside it as
+    ``clicks.json.before-viewer``. Returns that backup's path, or None."""
+    path = Path(path)
+    backup = None
+    if path.exists():
+        backup = path.with_name(path.name + ".before-viewer")
+        shutil.copyfile(path, backup)
+    entries = [{"file_path": c.file_path, "xy": [int(c.xy[0]), int(c.xy[1])], "class": c.cls} for c in clicks]
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(entries, indent=2) + "\n")
+    os.replace(tmp, path)
+    return backup
+
+
+class MaskClickControls(nn.Module):
+    """Viewer GUI of ``splatreplace masks --viewer`` (an nn.Module so that the viewer's scan finds it).
+
+    Args:
+        to_click: (origin, direction, class, index) → the pixel click for a viewer ray; raises ClickError.
+        validate: checks the whole list of clicks (e.g. two clicks on one instance); raises ClickError.
+    """
+
+    def __init__(
+        self,
+        to_click: Callable[[Sequence[float], Sequence[float], str, int], Click],
+        validate: Callable[[List[Click]], None],
+    ):
+        super().__init__()
+        self._to_click = to_click
+        self._validate = validate
+        self.clicks: List[Click] = []
+        self._confirmed = threading.Event()
+        self.viewer_control = ViewerControl()
+        self.click_button = ViewerButton("Click an instance", cb_hook=lambda _: self.arm_click())
+        self.class_name = ViewerText("Class of next click", default_value="object")
+        self.undo_button = ViewerButton("Undo last click", cb_hook=lambda _: self.undo())
+        self.confirm_button = ViewerButton("Write masks", cb_hook=lambda _: self.confirm())
+        self.click_list = ViewerText("Clicks", default_value="(none)", disabled=True)
+        self.status = ViewerText("Status", default_value="press 'Click an instance', then click it", disabled=True)
+
+    @property
+    def viewer_running(self) -> bool:
+        return getattr(self.viewer_control, "viser_server", None) is not None
+
+    def _say(self, message: str) -> None:
+        self.status.value = message
+
+    def _refresh(self) -> None:
+        self.click_list.value = "; ".join(
+            f"{k + 1}: {c.cls} ({Path(c.file_path).name} at {int(c.xy[0])},{int(c.xy[1])})" for k, c in enumerate(self.clicks)
+        ) or "(none)"
+
+    def arm_click(self) -> None:
+        """Listen for exactly one click (a registered click callback blocks camera controls)."""
+        self.viewer_control.register_pointer_cb("click", self.on_click)
+        self._say("click one pixel on an instance")
+
+    def on_click(self, click: ViewerClick) -> Optional[Click]:
+        """Adds the clicked instance; a bad click only changes the status message."""
+        if self.viewer_running:
+            self.viewer_control.unregister_pointer_cb()
+        cls = self.class_name.value or "object"
+        try:
+            new = self._to_click(click.origin, click.direction, cls, len(self.clicks))
+            self._validate(self.clicks + [new])
+        except (ClickError, ValueError) as err:
+            self._say(str(err))
+            return None
+        self.clicks.append(new)
+        self._refresh()
+        self._say(f"added instance {len(self.clicks)} ({cls}) at {new.file_path} {[int(v) for v in new.xy]}")
+        return new
+
+    def undo(self) -> None:
+        removed = self.clicks.pop() if self.clicks else None
+        self._refresh()
+        self._say(f"removed instance {len(self.clicks) + 1}" if removed else "nothing to undo")
+
+    def confirm(self) -> None:
+        if not self.clicks:
+            self._say("click at least one instance before writing the masks")
+            return
+        self._say(f"writing the masks of {len(self.clicks)} instances")
+        self._confirmed.set()
+
+    def wait_for_confirm(self, poll_s: float = 0.2) -> List[Click]:
+        """Blocks until "Write masks" is pressed; returns the clicks."""
+        while not self._confirmed.wait(poll_s):
+            pass
+        return list(self.clicks)
