@@ -102,17 +102,29 @@ def test_onnx_sam_backend_with_a_tiny_exported_pair(base_run, tmp_path):
     assert min(ious) > 0.2 and np.mean(ious) > 0.35, ious
 
 
-def test_splat_replace_trains_on_the_written_masks(base_run, tmp_path):
+def test_colmap_capture_end_to_end(base_run, tmp_path):
+    """A capture given as a COLMAP model (cameras, images, points3D written with pycolmap, no transforms.json):
+    `splatreplace masks` writes its transforms.json and masks, then a short `ns-train splat-replace` trains on
+    it (base stage initialised from the COLMAP points) and segments the clicked instances."""
     from splatreplace_ns.method.train import make_trainer_config, run_training
+    from splatreplace_ns.sim.colmap_export import export_colmap
 
-    _, capture, _ = base_run
-    config = make_trainer_config(capture, tmp_path / "runs", 100, contrastive_iterations=60)
+    scene, capture, report = base_run
+    data = tmp_path / "colmap_capture"
+    export_colmap(scene, data)
+    shutil.copy2(capture / "clicks.json", data / "clicks.json")
+    assert not (data / "transforms.json").exists()
+    make_masks(MasksCommand(data, load_config=report["config"]))
+    ious = mask_iou(scene, data)
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
+
+    config = make_trainer_config(data, tmp_path / "runs", 100, contrastive_iterations=60)
     config.pipeline.datamanager.contrastive_uniform_samples = 512
     config.pipeline.datamanager.contrastive_mask_samples = 256
     trainer = run_training(config)
     model = trainer.pipeline.model
     assert model.stage == "segmented"
-    assert len(model.instances) >= 1
+    assert len(model.instances) == 3
 
 
 def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):

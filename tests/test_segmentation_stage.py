@@ -130,7 +130,7 @@ def test_viewer_click_flow_selects_the_clicked_instance(segmented):
         assert pipeline.model.highlight is not None and bool(pipeline.model.highlight.any())
 
         controls.undo()
-        assert selection.instances == [] and "(none)" in controls.instance_list.value
+        assert selection.instances == [] and "(none)" in controls.listing.value
         controls.confirm()  # nothing selected: refuses, stays open
         assert "at least one" in controls.status.value
     finally:

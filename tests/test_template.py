@@ -228,6 +228,22 @@ def test_merge_keeps_one_gaussian_per_cell_and_the_most_opaque():
     assert (d < 2 * spacing).float().mean() > 0.95  # the merged template still covers the instance
 
 
+def test_merge_cell_ignores_clumps_of_near_duplicates():
+    """Densification leaves clumps of near-identical Gaussians; they must not shrink the merge grid to nothing.
+    Two copies that differ by a 0.5 % registration error merge to about one copy."""
+    gen = torch.Generator().manual_seed(1)
+    distinct = torch.nn.functional.normalize(torch.randn(300, 3, generator=gen), dim=-1)  # a unit sphere shell
+    clumped = distinct.repeat_interleave(3, dim=0) + 1e-6 * torch.randn(900, 3, generator=gen)
+    params, labels = _random_scene(n_bg=0, n_inst=(900, 900))
+    params["means"][:900] = clumped
+    params["means"][900:] = clumped + torch.tensor([0.005, 0.0, 0.0])  # the second copy, registered 0.5 % off
+    merged, _ = build_templates(params, labels, {1: "a", 2: "a"}, {1: torch.eye(4), 2: torch.eye(4)}, {"a": 1},
+                                merge=True)
+    assert len(merged["means"]) <= 1.3 * 300, len(merged["means"])
+    d = torch.cdist(distinct, merged["means"]).min(dim=1).values
+    assert (d < 0.1).all()  # the merged template still covers the shell (cell = radius / 30 ≈ 0.033)
+
+
 def test_zero_mix_puts_the_colour_in_the_offsets():
     params, labels = _random_scene(n_bg=5, n_inst=(10, 10))
     out, table = build_templates(params, labels, {1: "a", 2: "a"}, {1: torch.eye(4), 2: torch.eye(4)}, {"a": 1}, lam=0.0)

@@ -14,20 +14,19 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence
 
 import numpy as np
 import torch
-from torch import nn
 
-from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerClick, ViewerControl, ViewerText
+from nerfstudio.viewer.viewer_elements import ViewerClick
 
 from splatreplace_ns.masks.base import FrameCameras
 from splatreplace_ns.masks.lifting import ClickError, project_points, view_and_intrinsics, visible_by_depth
 from splatreplace_ns.segment.clicks import Click
+from splatreplace_ns.viewer.click_controls import ClickControls
 from splatreplace_ns.viewer.rays import ray_camera
 
 
@@ -134,8 +133,8 @@ def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
     return backup
 
 
-class MaskClickControls(nn.Module):
-    """Viewer GUI of ``splatreplace masks --viewer`` (an nn.Module so that the viewer's scan finds it).
+class MaskClickControls(ClickControls):
+    """Viewer GUI of ``splatreplace masks --viewer``.
 
     Args:
         to_click: (origin, direction, class, index) → the pixel click for a viewer ray; raises ClickError.
@@ -147,40 +146,19 @@ class MaskClickControls(nn.Module):
         to_click: Callable[[Sequence[float], Sequence[float], str, int], Click],
         validate: Callable[[List[Click]], None],
     ):
-        super().__init__()
+        super().__init__("Click an instance", "Undo last click", "Write masks", "Clicks", "Status",
+                         "press 'Click an instance', then click it")
         self._to_click = to_click
         self._validate = validate
         self.clicks: List[Click] = []
-        self._confirmed = threading.Event()
-        self.viewer_control = ViewerControl()
-        self.click_button = ViewerButton("Click an instance", cb_hook=lambda _: self.arm_click())
-        self.class_name = ViewerText("Class of next click", default_value="object")
-        self.undo_button = ViewerButton("Undo last click", cb_hook=lambda _: self.undo())
-        self.confirm_button = ViewerButton("Write masks", cb_hook=lambda _: self.confirm())
-        self.click_list = ViewerText("Clicks", default_value="(none)", disabled=True)
-        self.status = ViewerText("Status", default_value="press 'Click an instance', then click it", disabled=True)
-
-    @property
-    def viewer_running(self) -> bool:
-        return getattr(self.viewer_control, "viser_server", None) is not None
-
-    def _say(self, message: str) -> None:
-        self.status.value = message
 
     def _refresh(self) -> None:
-        self.click_list.value = "; ".join(
+        self.listing.value = "; ".join(
             f"{k + 1}: {c.cls} ({Path(c.file_path).name} at {int(c.xy[0])},{int(c.xy[1])})" for k, c in enumerate(self.clicks)
         ) or "(none)"
 
-    def arm_click(self) -> None:
-        """Listen for exactly one click (a registered click callback blocks camera controls)."""
-        self.viewer_control.register_pointer_cb("click", self.on_click)
-        self._say("click one pixel on an instance")
-
     def on_click(self, click: ViewerClick) -> Optional[Click]:
         """Adds the clicked instance; a bad click only changes the status message."""
-        if self.viewer_running:
-            self.viewer_control.unregister_pointer_cb()
         cls = self.class_name.value or "object"
         try:
             new = self._to_click(click.origin, click.direction, cls, len(self.clicks))
@@ -207,6 +185,5 @@ class MaskClickControls(nn.Module):
 
     def wait_for_confirm(self, poll_s: float = 0.2) -> List[Click]:
         """Blocks until "Write masks" is pressed; returns the clicks."""
-        while not self._confirmed.wait(poll_s):
-            pass
+        self._wait(poll_s)
         return list(self.clicks)

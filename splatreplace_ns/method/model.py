@@ -112,8 +112,10 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """λ in c = λ c_shared + (1 − λ) c_offset (paper: 0.8)."""
     template_union: Literal["merge", "all"] = "merge"
     """How a class's registered instances form its template. all: their plain union (paper); every instance then
-    renders every copy's Gaussians. merge: one Gaussian (the most opaque) per cell of the template instance's
-    point spacing, so the template stays about one instance in size (much cheaper to render and store)."""
+    renders every copy's Gaussians. merge: one Gaussian (the most opaque) per grid cell (template radius /
+    template-merge-cells), so the template stays near one instance in size (much cheaper to render and store)."""
+    template_merge_cells: int = 30
+    """Grid cells per template radius of the merge (larger: finer grid, more Gaussians kept)."""
     offset_l1_lambda: float = 0.01
     """Weight of the L1 penalty that keeps per-instance SH offsets small."""
     finetune_densify: bool = False

@@ -337,7 +337,7 @@ class SplatReplacePipeline(VanillaPipeline):
         params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
         new_params, table = build_templates(
             params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
-            merge=model.config.template_union == "merge",
+            merge=model.config.template_union == "merge", merge_cells_per_radius=model.config.template_merge_cells,
         )
         if len(table.ids) == 0:
             CONSOLE.log("[bold yellow]no registered instance: the scene is not replaced; fine-tuning the segmented scene")

@@ -80,7 +80,7 @@ class RegistrationConfig:
             look-alike views, e.g. a box turned by 180°).
         color_tolerance: mean absolute RGB difference under which two overlapping centres agree.
         min_photometric_fitness: with select="photometric", a best score below this is a failure. Correct
-            poses scored 0.16–0.68 on the sim presets (bench register); an accepted wrong chair pose scored 0.02
+            poses scored 0.12–0.67 on the sim presets (bench register); an accepted wrong chair pose scored 0.02
             and put a chair in the wrong place in the replaced scene (a failure leaves the instance as it was).
         fpfh_voxel_rel: FPFH voxel size relative to the template radius.
         fpfh_restarts: RANSAC restarts for FPFH (best fitness kept).
@@ -89,7 +89,7 @@ class RegistrationConfig:
             bench register); an instance with fewer than ``min_solid_points`` such Gaussians uses all of them.
             The renders always use every Gaussian, so the matcher sees the whole appearance.
         min_solid_points: see ``min_opacity``.
-        min_fitness: (correct poses: 0.32–0.99 on the sim presets) the final ICP/FPFH fitness (fraction of
+        min_fitness: (correct poses: 0.24–0.99 on the sim presets) the final ICP/FPFH fitness (fraction of
             source centres with a template centre within
             the finest distance) below which a result counts as a failure.
         seed: RANSAC seed.

@@ -7,65 +7,46 @@ owns an instance of this; nerfstudio's viewer finds the elements on it.
 
 from __future__ import annotations
 
-import threading
 from typing import TYPE_CHECKING, Optional
 
 import torch
-from torch import nn
 
-from nerfstudio.viewer.viewer_elements import ViewerButton, ViewerClick, ViewerControl, ViewerText
+from nerfstudio.viewer.viewer_elements import ViewerClick
 
 from splatreplace_ns.segment.instances import SelectionError
+from splatreplace_ns.viewer.click_controls import ClickControls
 
 if TYPE_CHECKING:
     from splatreplace_ns.method.pipeline import SplatReplacePipeline
 
 
-class InstanceSelectionControls(nn.Module):
-    """Viewer GUI for one click per instance (an nn.Module only so the viewer's scan finds it)."""
+class InstanceSelectionControls(ClickControls):
+    """The segmentation stage's click controls; the pipeline's selection does the work."""
 
     def __init__(self, pipeline: "SplatReplacePipeline"):
-        super().__init__()
+        super().__init__("Select instances", "Undo last instance", "Confirm instances", "Instances", "Selection status",
+                         "waits for the segmentation stage")
         self._pipeline = [pipeline]  # a list keeps the pipeline out of this module's children
-        self._confirmed = threading.Event()
-        self.viewer_control = ViewerControl()
-        self.select_button = ViewerButton("Select instances", cb_hook=lambda _: self.arm_click())
-        self.class_name = ViewerText("Class of next click", default_value="object")
-        self.undo_button = ViewerButton("Undo last instance", cb_hook=lambda _: self.undo())
-        self.confirm_button = ViewerButton("Confirm instances", cb_hook=lambda _: self.confirm())
-        self.instance_list = ViewerText("Instances", default_value="(none)", disabled=True)
-        self.status = ViewerText("Selection status", default_value="waits for the segmentation stage", disabled=True)
 
     @property
     def pipeline(self) -> "SplatReplacePipeline":
         return self._pipeline[0]
 
-    @property
-    def viewer_running(self) -> bool:
-        return getattr(self.viewer_control, "viser_server", None) is not None
-
-    def _say(self, message: str) -> None:
-        self.status.value = message
-
     def _refresh(self) -> None:
         selection = self.pipeline.selection
         items = selection.summary() if selection else []
-        self.instance_list.value = "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
+        self.listing.value = "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
         model = self.pipeline.model
         model.highlight = (selection.labels() > 0) if (selection and items) else None
 
     def arm_click(self) -> None:
-        """Listen for exactly one click (a registered click callback blocks camera controls)."""
         if self.pipeline.selection is None:
             self._say("selection opens when training reaches the segmentation stage")
             return
-        self.viewer_control.register_pointer_cb("click", self.on_click)
-        self._say("click one pixel on an instance")
+        super().arm_click()
 
     def on_click(self, click: ViewerClick) -> Optional[int]:
         """Adds the clicked instance; a bad click only changes the status message."""
-        if self.viewer_running:
-            self.viewer_control.unregister_pointer_cb()
         selection = self.pipeline.selection
         if selection is None:
             self._say("selection opens when training reaches the segmentation stage")
@@ -99,6 +80,5 @@ class InstanceSelectionControls(nn.Module):
         """Blocks the training thread until "Confirm instances" is pressed."""
         self._confirmed.clear()
         self._say("click 'Select instances', then one pixel per instance; 'Confirm instances' when done")
-        while not self._confirmed.wait(poll_s):
-            pass
+        self._wait(poll_s)
         self.pipeline.model.highlight = None
