@@ -1,9 +1,10 @@
 """``splatreplace masks DATA``: instance masks for a capture from one click per instance.
 
 Trains (or reuses, ``--load-config``) the base 3DGS* stage, lifts each click of ``clicks.json`` (or each
-click made in nerfstudio's viewer with ``--viewer``, then written to clicks.json) to 3D with the rendered depth, finds the clicked instances in 3D (supporting planes removed, Gaussian centres
-clustered), renders every instance into every frame and cleans the borders (``geometric``), or prompts
-a SAM-style ONNX pair with the projected clicks and the instance's box (``onnx-sam``). Writes
+click made in nerfstudio's viewer with ``--viewer``, then written to clicks.json) to 3D with the rendered
+depth, finds the clicked instances in 3D (supporting planes removed, Gaussian centres clustered), renders
+every instance into every frame and cleans the borders (``geometric``), or prompts a SAM-style ONNX pair
+with the projected clicks and the instance's box (``onnx-sam``). Writes
 ``masks/NNNN.png`` for every frame and the ``instance_mask_path`` / ``instances`` entries of
 ``transforms.json`` (original kept as ``transforms.json.before-masks``). Every bad input is reported
 before anything is written.
@@ -123,6 +124,13 @@ def lift_clicks(model, frames: FrameCameras, clicks: List[Click], min_alpha: flo
     return lifted
 
 
+def model_clustering(model, cfg: ClusteringConfig) -> Clustering:
+    """Supporting planes and clusters of the model's Gaussian centres."""
+    means = model.means.detach().cpu().double().numpy()
+    opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
+    return cluster_gaussians(means, opacities, cfg)
+
+
 def instance_labels_of_gaussians(
     model, lifted: List[LiftedClick], cfg: ClusteringConfig, clustering: Optional[Clustering] = None
 ) -> torch.Tensor:
@@ -131,7 +139,7 @@ def instance_labels_of_gaussians(
     means = model.means.detach().cpu().double().numpy()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
     if clustering is None:
-        clustering = cluster_gaussians(means, opacities, cfg)
+        clustering = model_clustering(model, cfg)
     return torch.from_numpy(instance_ids(lifted, means, opacities, gaussian_colours(model), clustering, cfg))
 
 
@@ -165,9 +173,7 @@ def sam_view_labels(
 def click_checker(model, frames: FrameCameras, cfg: MasksCommand) -> Callable[[List[Click]], None]:
     """A function that raises ClickError for a list of clicks that cannot make masks (background, a
     supporting plane, one instance clicked twice); the model's Gaussians are clustered once."""
-    means = model.means.detach().cpu().double().numpy()
-    opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    clustering = cluster_gaussians(means, opacities, cfg.clustering)
+    clustering = model_clustering(model, cfg.clustering)
 
     def check(clicks: List[Click]) -> None:
         instance_labels_of_gaussians(model, lift_clicks(model, frames, clicks, cfg.min_alpha), cfg.clustering, clustering)
