@@ -93,3 +93,29 @@ def sample_mesh(mesh, n: int, seed: int):
     r1, r2 = rng.random((2, n, 1))
     s = np.sqrt(r1)
     return (1 - s) * a[tri] + s * (1 - r2) * b[tri] + s * r2 * c[tri], float(area.sum())
+
+
+def free_port() -> int:
+    """A TCP port nothing listens on (for a test viser server)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def fire_viewer_click(server, origin: torch.Tensor, direction: torch.Tensor) -> None:
+    """Sends one click ray (nerfstudio world units) through the viser server's registered pointer callback,
+    as the browser would, and checks that the callback removed itself."""
+    from viser._scene_handles import ScenePointerEvent
+
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    callback = server.scene._scene_pointer_cb
+    assert callback is not None, "the button did not register a click callback"
+    callback(ScenePointerEvent(
+        client=None, client_id=0, event_type="click",
+        ray_origin=tuple((origin * VISER_NERFSTUDIO_SCALE_RATIO).tolist()),
+        ray_direction=tuple(direction.tolist()), screen_pos=((0.5, 0.5),),
+    ))
+    assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"

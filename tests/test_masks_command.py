@@ -15,6 +15,7 @@ from splatreplace_ns.masks.command import MasksCommand, make_masks
 from splatreplace_ns.masks.lifting import ClickError
 from splatreplace_ns.masks.onnx_sam import OnnxModelError
 from splatreplace_ns.sim import make_scene
+from scenes import fire_viewer_click, free_port
 
 
 def mask_iou(scene, capture) -> list:
@@ -133,14 +134,11 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
     """`splatreplace masks --viewer`: clicks fired through viser's pointer callback (real camera rays through the
     ground-truth click pixels) become pixel clicks on the clicked crates; bad clicks change nothing; the
     written clicks.json makes masks that match the ground truth."""
-    import socket
     import types
 
     import torch
     import viser
-    from viser._scene_handles import ScenePointerEvent
 
-    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
     from splatreplace_ns.masks.base import frame_cameras, load_base
     from splatreplace_ns.masks.command import mask_click_controls
     from splatreplace_ns.masks.viewer_clicks import write_clicks_json
@@ -162,24 +160,13 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
         ray = torch.tensor([(u + 0.5 - float(camera.cx)) / float(camera.fx), -(v + 0.5 - float(camera.cy)) / float(camera.fy), -1.0])
         return c2w[:, 3], c2w[:, :3] @ (ray / ray.norm())
 
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    sock.close()
-    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
         controls.viewer_control._setup(types.SimpleNamespace(viser_server=server))
 
         def fire(origin, direction):
             controls.arm_click()
-            callback = server.scene._scene_pointer_cb
-            assert callback is not None, "'Click an instance' did not register a click callback"
-            callback(ScenePointerEvent(
-                client=None, client_id=0, event_type="click",
-                ray_origin=tuple((origin * VISER_NERFSTUDIO_SCALE_RATIO).tolist()),
-                ray_direction=tuple(direction.tolist()), screen_pos=((0.5, 0.5),),
-            ))
-            assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"
+            fire_viewer_click(server, origin, direction)
 
         for k, gt in enumerate(gt_clicks):
             controls.class_name.value = gt["class"]
@@ -226,7 +213,6 @@ def test_viewer_controls_refuse_to_confirm_nothing():
 def test_masks_command_with_the_viewer(base_run, tmp_path, monkeypatch):
     """`splatreplace masks DATA --viewer` end to end: nerfstudio's viewer starts on the base model and finds the
     controls; clicks made there write clicks.json and the masks; nothing else is needed."""
-    import socket
     import threading
     import time
 
@@ -239,10 +225,7 @@ def test_masks_command_with_the_viewer(base_run, tmp_path, monkeypatch):
     data = tmp_path / "viewer_run"
     shutil.copytree(capture, data)
     (data / "clicks.json").unlink()  # a capture without clicks
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    sock.close()
+    port = free_port()
     made = []
     real = command.mask_click_controls
     monkeypatch.setattr(command, "mask_click_controls", lambda *a: made.append(real(*a)) or made[-1])

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import types
 
 import numpy as np
@@ -14,6 +13,7 @@ from splatreplace_ns.method.train import make_trainer_config, run_training
 from splatreplace_ns.segment.clicks import Click
 from splatreplace_ns.segment.instances import SelectionError
 from splatreplace_ns.sim import make_scene
+from scenes import fire_viewer_click, free_port
 
 
 @pytest.fixture(scope="module")
@@ -80,18 +80,9 @@ def test_bad_clicks_change_nothing(segmented):
     assert [i.id for i in selection.instances] == before
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_viewer_click_flow_selects_the_clicked_instance(segmented):
     """Drives the viewer's click callback (viser → nerfstudio ViewerClick → our handler) headlessly."""
     import viser
-    from viser._scene_handles import ScenePointerEvent
-
-    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
 
     data, _, trainer = segmented
     pipeline = trainer.pipeline
@@ -111,14 +102,7 @@ def test_viewer_click_flow_selects_the_clicked_instance(segmented):
         origin = c2w[:, 3]
 
         controls.arm_click()
-        callback = server.scene._scene_pointer_cb
-        assert callback is not None, "Select instances did not register a click callback"
-        callback(ScenePointerEvent(
-            client=None, client_id=0, event_type="click",
-            ray_origin=tuple((origin * VISER_NERFSTUDIO_SCALE_RATIO).tolist()),
-            ray_direction=tuple(direction.tolist()), screen_pos=((0.5, 0.5),),
-        ))
-        assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"
+        fire_viewer_click(server, origin, direction)
         assert len(selection.instances) == 1, controls.status.value
         chosen = selection.labels() == 1
         # it is the instance that the finished segmentation gave to this click (the second one):
