@@ -215,6 +215,15 @@ def _scene(cfg: BenchRegisterConfig) -> Path:
     return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
 
 
+def _shown_path(path: Path) -> str:
+    """``path`` relative to the working directory when it lies below it (results stay free of machine paths)."""
+    path = Path(path).resolve()
+    try:
+        return str(path.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 def _finished_run(config_path: Path) -> bool:
     models = config_path.parent / "nerfstudio_models"
     return config_path.exists() and models.is_dir() and any(models.glob("step-*.ckpt"))
@@ -591,7 +600,7 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
         "depth_tolerance": cfg.depth_tolerance, "rows": list(cfg.rows),
         "model_reused": scene.reused,
-        "run": str(scene.config_path), "sh_degree": model_sh_degree(pipeline),
+        "run": _shown_path(scene.config_path), "sh_degree": model_sh_degree(pipeline),
         "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)},
     }
     result["machine"] = machine_info(load_avg)
