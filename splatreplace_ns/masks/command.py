@@ -31,6 +31,7 @@ from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, p
 from splatreplace_ns.masks.onnx_sam import OnnxSam, sam_labels
 from splatreplace_ns.masks.render import BorderConfig, front_to_back_order, labels_from_weights, one_hot_labels, render_instance_masks
 from splatreplace_ns.masks.viewer_clicks import (
+    FrameRenders,
     MaskClickControls,
     pixel_click_for_point,
     render_frames,
@@ -110,16 +111,22 @@ def read_rgb(path: Path, width: int, height: int) -> np.ndarray:
 
 
 @torch.no_grad()
-def lift_clicks(model, frames: FrameCameras, clicks: List[Click], min_alpha: float) -> List[LiftedClick]:
-    """Each click → its surface point, from the base model's rendered depth in the click's frame."""
+def lift_clicks(
+    model, frames: FrameCameras, clicks: List[Click], min_alpha: float, renders: Optional[FrameRenders] = None
+) -> List[LiftedClick]:
+    """Each click → its surface point, from the base model's rendered depth in the click's frame (taken from
+    ``renders`` when given: the viewer renders every frame once and checks each new click against them)."""
     ones = torch.ones(model.num_points, 1, device=model.device)
     lifted = []
     for click in clicks:
         source = f"click {click.index} ({click.file_path} at {list(click.xy)})"
         frame = frames.index_of(click.file_path, source)
-        camera = frames.cameras[frame : frame + 1].to(model.device)
-        _, alpha, depth = model.render_features(camera, ones)
-        viewmat, K, _, _ = view_and_intrinsics(camera)
+        if renders is not None:
+            viewmat, K, depth, alpha = renders.viewmats[frame], renders.Ks[frame], renders.depths[frame], renders.alphas[frame]
+        else:
+            camera = frames.cameras[frame : frame + 1].to(model.device)
+            _, alpha, depth = model.render_features(camera, ones)
+            viewmat, K, _, _ = view_and_intrinsics(camera)
         lifted.append(lift_click(click.index, frame, click.xy, click.cls, source, depth.cpu(), alpha.cpu(), viewmat.cpu(), K.cpu(), min_alpha))
     return lifted
 
@@ -170,13 +177,14 @@ def sam_view_labels(
     return sam_labels(sam, image, rendered, order, prompts)
 
 
-def click_checker(model, frames: FrameCameras, cfg: MasksCommand) -> Callable[[List[Click]], None]:
+def click_checker(model, frames: FrameCameras, renders: FrameRenders, cfg: MasksCommand) -> Callable[[List[Click]], None]:
     """A function that raises ClickError for a list of clicks that cannot make masks (background, a
-    supporting plane, one instance clicked twice); the model's Gaussians are clustered once."""
+    supporting plane, one instance clicked twice); the Gaussians are clustered and the frames rendered once."""
     clustering = model_clustering(model, cfg.clustering)
 
     def check(clicks: List[Click]) -> None:
-        instance_labels_of_gaussians(model, lift_clicks(model, frames, clicks, cfg.min_alpha), cfg.clustering, clustering)
+        lifted = lift_clicks(model, frames, clicks, cfg.min_alpha, renders)
+        instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
 
     return check
 
@@ -192,7 +200,7 @@ def mask_click_controls(model, frames: FrameCameras, cfg: MasksCommand) -> MaskC
         point = surface_point_on_ray(model, origin, direction, focal, cfg.min_alpha, source)
         return pixel_click_for_point(point, direction, renders, frames.file_paths, cls, index, cfg.min_alpha, source)
 
-    return MaskClickControls(to_click, click_checker(model, frames, cfg))
+    return MaskClickControls(to_click, click_checker(model, frames, renders, cfg))
 
 
 def clicks_from_viewer(base: BaseModel, frames: FrameCameras, cfg: MasksCommand) -> List[Click]:
