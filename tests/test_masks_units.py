@@ -54,6 +54,28 @@ def test_lift_click_rejects_empty_and_outside_pixels():
         lift_click(2, 0, (64.0, 3.0), "crate", "click 2", depth, alpha, viewmat, K)
 
 
+def test_viewer_click_pixel_lifts_back_onto_the_clicked_point():
+    """A point on a box's outline whose projection rounds onto the floor beside the box becomes the box pixel
+    next to it (the floor pixel would lift to the floor); a point no pixel lifts back to gives None."""
+    from splatreplace_ns.masks.viewer_clicks import consistent_pixel_near
+
+    viewmat = torch.eye(4, dtype=torch.float64)
+    depth = torch.full((48, 64, 1), 4.0, dtype=torch.float64)  # floor
+    alpha = torch.ones(48, 64, 1, dtype=torch.float64)
+    depth[10:30, 20:40] = 2.0  # box, columns 20..39
+    on_outline = lift_pixel(19.45, 15, 2.0, viewmat, K)  # projects to u = 19.95: the floor's column 19
+    uv, _ = project_points(on_outline[None], viewmat, K)
+    assert int(uv[0, 0]) == 19
+    assert consistent_pixel_near(on_outline, viewmat, K, depth, alpha, 0.5) == (20, 15)
+    floor = lift_pixel(17, 15, 4.0, viewmat, K)
+    assert consistent_pixel_near(floor, viewmat, K, depth, alpha, 0.5) == (17, 15)
+    # a point floating in front of everything: no pixel lifts back to it
+    assert consistent_pixel_near(lift_pixel(30, 20, 1.0, viewmat, K), viewmat, K, depth, alpha, 0.5) is None
+    # nothing opaque near the projection
+    alpha[:] = 0.0
+    assert consistent_pixel_near(lift_pixel(30, 20, 2.0, viewmat, K), viewmat, K, depth, alpha, 0.5) is None
+
+
 def boxes_on_a_floor(seed: int = 0):
     """Surface samples of a floor and of three boxes standing on it (two of them touching), as a base model would hold them."""
     rng = np.random.default_rng(seed)

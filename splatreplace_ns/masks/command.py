@@ -177,10 +177,14 @@ def sam_view_labels(
     return sam_labels(sam, image, rendered, order, prompts)
 
 
-def click_checker(model, frames: FrameCameras, renders: FrameRenders, cfg: MasksCommand) -> Callable[[List[Click]], None]:
+def click_checker(
+    model, frames: FrameCameras, renders: FrameRenders, cfg: MasksCommand, clustering: Optional[Clustering] = None
+) -> Callable[[List[Click]], None]:
     """A function that raises ClickError for a list of clicks that cannot make masks (background, a
-    supporting plane, one instance clicked twice); the Gaussians are clustered and the frames rendered once."""
-    clustering = model_clustering(model, cfg.clustering)
+    supporting plane, one instance clicked twice); the Gaussians are clustered (unless ``clustering`` is
+    given) and the frames rendered once."""
+    if clustering is None:
+        clustering = model_clustering(model, cfg.clustering)
 
     def check(clicks: List[Click]) -> None:
         lifted = lift_clicks(model, frames, clicks, cfg.min_alpha, renders)
@@ -189,10 +193,16 @@ def click_checker(model, frames: FrameCameras, renders: FrameRenders, cfg: Masks
     return check
 
 
-def mask_click_controls(model, frames: FrameCameras, cfg: MasksCommand) -> MaskClickControls:
+def mask_click_controls(
+    model, frames: FrameCameras, cfg: MasksCommand, renders: Optional[FrameRenders] = None,
+    clustering: Optional[Clustering] = None,
+) -> MaskClickControls:
     """The viewer controls, wired to the base model: a click ray → its surface point → a pixel click in the
-    frame that sees it best, checked against the clicks made so far."""
-    renders = render_frames(model, frames)
+    frame that sees it best, checked against the clicks made so far. ``renders`` and ``clustering`` are
+    computed here unless given; the masks are then made from the same ones, so a click accepted in the
+    viewer is a click the masks accept."""
+    if renders is None:
+        renders = render_frames(model, frames)
     focal = float(frames.cameras.fx.median())
 
     def to_click(origin, direction, cls: str, index: int) -> Click:
@@ -200,10 +210,12 @@ def mask_click_controls(model, frames: FrameCameras, cfg: MasksCommand) -> MaskC
         point = surface_point_on_ray(model, origin, direction, focal, cfg.min_alpha, source)
         return pixel_click_for_point(point, direction, renders, frames.file_paths, cls, index, cfg.min_alpha, source)
 
-    return MaskClickControls(to_click, click_checker(model, frames, renders, cfg))
+    return MaskClickControls(to_click, click_checker(model, frames, renders, cfg, clustering))
 
 
-def clicks_from_viewer(base: BaseModel, frames: FrameCameras, cfg: MasksCommand) -> List[Click]:
+def clicks_from_viewer(
+    base: BaseModel, frames: FrameCameras, cfg: MasksCommand, renders: FrameRenders, clustering: Clustering
+) -> List[Click]:
     """Opens nerfstudio's viewer on the base model and returns the clicks made there, also written to
     clicks.json (so that ``ns-train splat-replace`` selects the same instances)."""
     import threading
@@ -213,7 +225,7 @@ def clicks_from_viewer(base: BaseModel, frames: FrameCameras, cfg: MasksCommand)
     from nerfstudio.viewer.viewer import Viewer
 
     pipeline = base.pipeline
-    controls = mask_click_controls(base.model, frames, cfg)
+    controls = mask_click_controls(base.model, frames, cfg, renders, clustering)
     # the segmentation stage's own "Select instances" controls do not apply to a base model
     if hasattr(pipeline, "selection_controls"):
         del pipeline.selection_controls
@@ -257,11 +269,17 @@ def make_masks(cfg: MasksCommand) -> Dict:
     model.eval()
     frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale)
 
-    if clicks is None:
-        clicks = clicks_from_viewer(base, frames, cfg)
     t0 = time.perf_counter()
-    lifted = lift_clicks(model, frames, clicks, cfg.min_alpha)
-    instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering)
+    clustering = model_clustering(model, cfg.clustering)
+    renders = None
+    if clicks is None:
+        # the viewer checks each click against these renders and this clustering; the masks use the same
+        renders = render_frames(model, frames)
+        viewer_start = time.perf_counter()
+        clicks = clicks_from_viewer(base, frames, cfg, renders, clustering)
+        t0 += time.perf_counter() - viewer_start  # the time spent clicking is not the masks' time
+    lifted = lift_clicks(model, frames, clicks, cfg.min_alpha, renders)
+    instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
     masks = []
     for index, file_path in enumerate(frames.file_paths):
         camera = frames.cameras[index : index + 1].to(model.device)

@@ -16,7 +16,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -24,7 +24,7 @@ import torch
 from nerfstudio.viewer.viewer_elements import ViewerClick
 
 from splatreplace_ns.masks.base import FrameCameras
-from splatreplace_ns.masks.lifting import ClickError, project_points, view_and_intrinsics, visible_by_depth
+from splatreplace_ns.masks.lifting import ClickError, lift_pixel, project_points, view_and_intrinsics, visible_by_depth
 from splatreplace_ns.segment.clicks import Click
 from splatreplace_ns.viewer.click_controls import ClickControls
 from splatreplace_ns.viewer.rays import ray_camera
@@ -81,12 +81,51 @@ def surface_point_on_ray(
     return torch.tensor(np.asarray(origin, dtype=np.float64) + d * unit, dtype=torch.float32)
 
 
+def consistent_pixel_near(
+    point: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
+    min_alpha: float, radius: int = 2, relative_tolerance: float = 0.05,
+) -> Optional[Tuple[int, int]]:
+    """The pixel near a point's projection whose rendered depth lifts back onto the point.
+
+    The projection of a point on an object's outline can round onto the floor beside it; that pixel would
+    lift to the floor. So the pixels within ``radius`` of the projection are lifted (rendered depth along
+    their rays) and the one that lands nearest the point is kept, if it lands within ``relative_tolerance``
+    of the point's depth.
+
+    Args:
+        point: [3] world point.
+        viewmat: [4, 4] world→camera (OpenCV); K: [3, 3].
+        depth, alpha: [H, W, 1] rendered in that view.
+
+    Returns:
+        (col, row), or None when no opaque pixel near the projection lifts back to the point.
+    """
+    H, W = depth.shape[:2]
+    uv, z = project_points(point[None].to(viewmat.dtype), viewmat, K)
+    z0 = float(z[0])
+    if z0 <= 1e-6:
+        return None
+    u0, v0 = int(np.floor(float(uv[0, 0]))), int(np.floor(float(uv[0, 1])))
+    best, best_key = None, (np.inf, np.inf)
+    for row in range(max(v0 - radius, 0), min(v0 + radius, H - 1) + 1):
+        for col in range(max(u0 - radius, 0), min(u0 + radius, W - 1) + 1):
+            d = float(depth[row, col, 0])
+            if float(alpha[row, col, 0]) < min_alpha or not np.isfinite(d) or d <= 0:
+                continue
+            distance = float((lift_pixel(col, row, d, viewmat.double(), K.double()) - point.double()).norm())
+            key = (distance, (col - u0) ** 2 + (row - v0) ** 2)  # ties: the pixel nearest the projection
+            if distance <= relative_tolerance * z0 and key < best_key:
+                best, best_key = (col, row), key
+    return best
+
+
 def pixel_click_for_point(
     point: torch.Tensor, direction: Sequence[float], renders: FrameRenders, file_paths: Sequence[str], cls: str,
     index: int, min_alpha: float, source: str,
 ) -> Click:
     """The pixel click that stands for a 3D point: in the frame that sees the point (inside the image, not
-    behind the rendered surface, opaque there) from the direction closest to ``direction``.
+    behind the rendered surface, at a pixel that lifts back onto it; see ``consistent_pixel_near``) from the direction
+    closest to ``direction``.
 
     Args:
         point: [3] surface point (normalised world frame).
@@ -103,15 +142,14 @@ def pixel_click_for_point(
         points = point[None].to(viewmat.dtype)
         if not bool(visible_by_depth(points, viewmat, K, depth, alpha, min_alpha=min_alpha)[0]):
             continue
-        uv, _ = project_points(points, viewmat, K)
-        col, row = int(np.floor(float(uv[0, 0]))), int(np.floor(float(uv[0, 1])))
-        if float(alpha[row, col, 0]) < min_alpha:
+        pixel = consistent_pixel_near(point, viewmat, K, depth, alpha, min_alpha)
+        if pixel is None:
             continue
         centre = (-viewmat[:3, :3].T @ viewmat[:3, 3]).double().numpy()
         ray = point.double().numpy() - centre
         score = float(ray @ view_dir) / max(float(np.linalg.norm(ray)), 1e-12)
         if score > best_score + 1e-9:  # ties keep the first frame: the same click always gives the same pixel
-            best, best_score = (frame, col, row), score
+            best, best_score = (frame, *pixel), score
     if best is None:
         raise ClickError(f"{source}: no training frame sees this point; click on an object the capture saw")
     frame, col, row = best
