@@ -118,6 +118,21 @@ def test_floor_removed_and_clicked_boxes_found_touching_ones_split():
     assert (ids[truth == 0] == 0).mean() > 0.97
 
 
+def test_refined_plane_does_not_depend_on_the_ransac_sample():
+    """Two RANSAC answers a sample apart refine to the same plane and inliers, bit for bit (so the same
+    model gives the same mask bytes), and the refit is the least-squares floor."""
+    from splatreplace_ns.masks.clustering import refine_plane
+
+    points = boxes_on_a_floor()[0]
+    floor = np.array([0.0, 0.0, 1.0, 0.0])
+    tilted = np.array([0.01, -0.008, 1.0, 0.002])
+    a, inliers_a = refine_plane(points, floor, 0.02)
+    b, inliers_b = refine_plane(points, -tilted, 0.02)  # the other sign, too
+    assert np.array_equal(a, b) and np.array_equal(inliers_a, inliers_b)
+    assert abs(a[2]) > 0.999 and abs(a[3]) < 0.005
+    assert np.abs(points[inliers_a] @ a[:3] + a[3]).max() <= 0.02
+
+
 def test_geodesic_split_gives_a_seedless_clump_to_its_nearest_side():
     from splatreplace_ns.masks.clustering import geodesic_split
 

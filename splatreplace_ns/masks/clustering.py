@@ -118,6 +118,38 @@ def largest_component(points: np.ndarray, eps: float) -> np.ndarray:
     return np.flatnonzero(labels == np.bincount(labels[labels >= 0]).argmax())
 
 
+def refine_plane(points: np.ndarray, plane: np.ndarray, threshold: float, max_rounds: int = 20) -> Tuple[np.ndarray, np.ndarray]:
+    """Least-squares refit of a RANSAC plane on its inliers, repeated until the inliers stop changing.
+
+    open3d's RANSAC runs its samples on several threads, so the plane it returns for one point set can
+    differ from run to run by a sample; refitting to a fixed point removes that, so that the same model
+    gives the same planes (and the same mask bytes).
+
+    Args:
+        points: [P, 3].
+        plane: [4] (a, b, c, d), a x + b y + c z + d = 0.
+        threshold: inlier distance.
+
+    Returns:
+        the refined [4] plane (unit normal, largest-magnitude normal component positive), inlier indices.
+    """
+    unit = plane[:3] / max(np.linalg.norm(plane[:3]), 1e-12)
+    plane = np.append(unit, plane[3] / max(np.linalg.norm(plane[:3]), 1e-12))
+    inliers = np.flatnonzero(np.abs(points @ plane[:3] + plane[3]) <= threshold)
+    for _ in range(max_rounds):
+        if len(inliers) < 3:
+            break
+        centre = points[inliers].mean(axis=0)
+        normal = np.linalg.svd(points[inliers] - centre, full_matrices=False)[2][-1]
+        normal = normal if normal[np.argmax(np.abs(normal))] > 0 else -normal
+        plane = np.append(normal, -float(normal @ centre))
+        refit = np.flatnonzero(np.abs(points @ plane[:3] + plane[3]) <= threshold)
+        if np.array_equal(refit, inliers):
+            break
+        inliers = refit
+    return plane, inliers
+
+
 def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> Tuple[np.ndarray, List[np.ndarray]]:
     """Iteratively finds the largest planes (RANSAC) and marks their inliers.
 
@@ -147,9 +179,9 @@ def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> 
         remaining = np.flatnonzero(~on_plane & ~set_aside)
         if len(remaining) < max(3, cfg.min_plane_fraction * len(points)):
             break
-        plane, inliers = _cloud(points[remaining]).segment_plane(threshold, 3, 1000)
-        inliers = remaining[np.asarray(inliers, dtype=np.int64)]
-        plane = np.asarray(plane, dtype=np.float64)
+        plane, _ = _cloud(points[remaining]).segment_plane(threshold, 3, 1000)
+        plane, inliers = refine_plane(points[remaining], np.asarray(plane, dtype=np.float64), threshold)
+        inliers = remaining[inliers]
         unit = plane[:3] / max(np.linalg.norm(plane[:3]), 1e-12)
         facing = np.abs(normals[inliers] @ unit) >= cfg.plane_normal_agreement
         if int(facing.sum()) < cfg.min_plane_fraction * len(points):
