@@ -141,3 +141,28 @@ def test_depth_loss_used_when_frames_carry_depth(segmented):
     losses = pipeline.model.get_loss_dict(outputs, batch)
     assert "depth_loss" in losses and torch.isfinite(losses["depth_loss"]) and losses["depth_loss"] > 0
     pipeline.model.eval()
+
+
+def test_scores_against_a_reference_scene(segmented, tmp_path):
+    """A run trained on masks of its own making is scored against another scene's ground truth: with the
+    run's own scene as reference the scores are those of its own masks; with the instance ids swapped in the
+    reference, the same masks score low."""
+    import shutil
+
+    from splatreplace_ns.eval.segmentation import score_views_from_clicks
+
+    data, _, trainer = segmented
+    pipeline = trainer.pipeline
+    assert pipeline.segmentation_report["skipped_clicks"] == []
+    own = score_views_from_clicks(pipeline, data / "clicks.json")
+    same = score_views_from_clicks(pipeline, data / "clicks.json", reference_scene=data)
+    assert own["miou"] > 0.5 and same["miou"] == own["miou"] and same["iou"] == own["iou"]
+    swapped = tmp_path / "swapped"
+    shutil.copytree(data, swapped)
+    clicks = json.loads((data / "clicks.json").read_text())
+    ids = [c["id"] for c in clicks]
+    for click, other in zip(clicks, ids[1:] + ids[:1]):
+        click["id"] = other
+    (swapped / "clicks.json").write_text(json.dumps(clicks))
+    wrong = score_views_from_clicks(pipeline, data / "clicks.json", reference_scene=swapped)
+    assert wrong["miou"] < 0.5 * own["miou"], (wrong["miou"], own["miou"])

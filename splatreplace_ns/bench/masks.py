@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import torch
 
-from splatreplace_ns.eval.segmentation import segmentation_scores
+from splatreplace_ns.eval.segmentation import ground_truth_masks_by_name, score_views_from_clicks, segmentation_scores
 from splatreplace_ns.masks.capture import strip_ground_truth
 from splatreplace_ns.bench.output import write_result_json
 
@@ -157,44 +157,6 @@ def with_ground_truth_masks(scene: Path, capture: Path, out: Path) -> Path:
 
 
 @torch.no_grad()
-def test_view_miou(pipeline, scene: Path, clicks_path: Path) -> Dict:
-    """Segmentation mIoU of the trained method's test-view masks against the scene's ground truth."""
-    from splatreplace_ns.segment.clicks import load_clicks
-    from splatreplace_ns.segment.instances import SelectionError
-    from splatreplace_ns.segment.select import masks_from_rendered_features
-
-    pipeline.model.eval()
-    selection = pipeline.begin_selection()
-    scene_clicks = json.loads((scene / "clicks.json").read_text())
-    pred_to_gt, failures = {}, []
-    for click in load_clicks(clicks_path):
-        gt_id = int(scene_clicks[click.index]["id"])
-        try:
-            pipeline.add_click(click)
-            pred_to_gt[selection.instances[-1].id] = gt_id
-        except SelectionError as err:
-            failures.append(str(err))
-            pred_to_gt[-(click.index + 1)] = gt_id
-    queries = selection.queries.to(pipeline.device)
-    seg_cfg = pipeline.config.segmentation
-    dataset = pipeline.datamanager.eval_dataset
-    gt_by_name = _gt_masks_by_name(scene)
-    preds, gts = [], []
-    for idx in range(len(dataset)):
-        camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
-        features, alpha, _ = pipeline.model.render_features(camera)
-        preds.append(masks_from_rendered_features(features, alpha, queries, seg_cfg.tau, seg_cfg.min_alpha).cpu())
-        gt = cv2.imread(str(gt_by_name[Path(dataset.image_filenames[idx]).name]), cv2.IMREAD_UNCHANGED)
-        gts.append(torch.from_numpy(gt.astype(np.int64)))
-    scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
-    return {"miou": scores["miou"], "failures": failures}
-
-
-def _gt_masks_by_name(scene: Path) -> Dict[str, Path]:
-    return {Path(f["file_path"]).name: scene / f["instance_mask_path"]
-            for f in json.loads((scene / "transforms.json").read_text())["frames"]}
-
-
 @torch.no_grad()
 def test_view_psnr_in_gt_masks(pipeline, scene: Path) -> Optional[float]:
     """Mean test-view PSNR inside the union of the scene's *ground-truth* instance masks, so that runs trained
@@ -204,7 +166,7 @@ def test_view_psnr_in_gt_masks(pipeline, scene: Path) -> Optional[float]:
     model = pipeline.model
     model.eval()
     dataset = pipeline.datamanager.eval_dataset
-    gt_by_name = _gt_masks_by_name(scene)
+    gt_by_name = ground_truth_masks_by_name(scene)
     values = []
     for idx in range(len(dataset)):
         camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
@@ -227,16 +189,26 @@ def downstream_run(cfg: BenchMasksConfig, data: Path, scene: Path, name: str) ->
         cfg.downstream_contrastive_iterations, cfg.downstream_finetune_iterations, experiment_name=name,
     )
     config.pipeline.model.num_downscales = 0
+    seg: Dict = {}
+    segmented_at = cfg.downstream_base_iterations + cfg.downstream_contrastive_iterations - 1
+
+    def score_segmentation(trainer, step: int) -> None:
+        # right after the segmentation stage: once the shared templates are built the instances share
+        # their Gaussians, and a click no longer selects one instance
+        if step == segmented_at:
+            seg.update(score_views_from_clicks(trainer.pipeline, data / "clicks.json", reference_scene=scene))
+            seg["skipped"] = list(trainer.pipeline.segmentation_report.get("skipped_clicks", []))
+
     start = time.perf_counter()
-    trainer = run_training(config)
+    trainer = run_training(config, after_step=score_segmentation)
     train_s = time.perf_counter() - start
     metrics = evaluate_test_views(trainer)
-    seg = test_view_miou(trainer.pipeline, scene, data / "clicks.json")
     return {
         "psnr": float(metrics["psnr"]),
         "psnr_masked": test_view_psnr_in_gt_masks(trainer.pipeline, scene),
         "segmentation_miou": seg["miou"],
         "click_failures": seg["failures"],
+        "clicks_skipped_in_training": seg["skipped"],
         "time_s": train_s,
     }
 
@@ -280,6 +252,9 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
             "psnr_gt_masks": gt["psnr"],
             "psnr_our_masks": ours["psnr"],
             "click_failures": {"gt_masks": gt["click_failures"], "our_masks": ours["click_failures"]},
+            "clicks_skipped_in_training": {
+                "gt_masks": gt["clicks_skipped_in_training"], "our_masks": ours["clicks_skipped_in_training"],
+            },
             "time_s": {"gt_masks": gt["time_s"], "our_masks": ours["time_s"]},
         }
         if gt["psnr_masked"] is None or ours["psnr_masked"] is None:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Dict, Mapping
+from typing import Dict, Mapping, Optional
 
+import cv2
+import numpy as np
 import torch
 
 
@@ -45,6 +47,12 @@ def segmentation_scores(pred: torch.Tensor, gt: torch.Tensor, pred_to_gt: Mappin
     }
 
 
+def ground_truth_masks_by_name(scene: Path) -> Dict[str, Path]:
+    """Image file name → ground-truth instance mask path, from a scene's transforms.json."""
+    frames = json.loads((Path(scene) / "transforms.json").read_text())["frames"]
+    return {Path(f["file_path"]).name: Path(scene) / f["instance_mask_path"] for f in frames}
+
+
 def click_gt_ids(pipeline, clicks_path: Path) -> Dict[int, int]:
     """Ground-truth instance id of every click in ``clicks.json``, by click index.
 
@@ -68,7 +76,7 @@ def click_gt_ids(pipeline, clicks_path: Path) -> Dict[int, int]:
 
 
 @torch.no_grad()
-def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None) -> Dict:
+def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference_scene: Optional[Path] = None) -> Dict:
     """Selects the instances from the clicks (no carving) and scores the masks they give in a set of views.
 
     The masks of a view are its rendered features thresholded against the click queries
@@ -80,7 +88,11 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None) -> Dict:
     Args:
         pipeline: a ``SplatReplacePipeline`` (its ``begin_selection``/``add_click`` replay the clicks).
         clicks_path: ``clicks.json``.
-        dataset: views to score (default: the eval dataset); must carry ``instance_mask``.
+        dataset: views to score (default: the eval dataset); must carry ``instance_mask`` unless
+            ``reference_scene`` is given.
+        reference_scene: a scene directory with the ground truth (masks in its transforms.json, the
+            clicks' ``"id"`` in its clicks.json), used instead of the dataset's own masks: a run trained on
+            masks of its own making is then scored against the truth.
 
     Returns:
         :func:`segmentation_scores` plus ``labels`` ([N] per-Gaussian labels of the replayed selection),
@@ -95,7 +107,11 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None) -> Dict:
     model.eval()
     try:
         selection = pipeline.begin_selection()
-        gt_ids = click_gt_ids(pipeline, clicks_path)
+        if reference_scene is None:
+            gt_ids = click_gt_ids(pipeline, clicks_path)
+        else:
+            gt_ids = {k: int(c["id"]) for k, c in enumerate(json.loads((Path(reference_scene) / "clicks.json").read_text()))}
+            gt_paths = ground_truth_masks_by_name(reference_scene)
         pred_to_gt, failures = {}, []
         for click in load_clicks(clicks_path):
             gt_id = gt_ids[click.index]
@@ -117,7 +133,11 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None) -> Dict:
             camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
             features, alpha, _ = model.render_features(camera)
             preds.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha).cpu())
-            gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
+            if reference_scene is None:
+                gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
+            else:
+                gt = cv2.imread(str(gt_paths[Path(dataset.image_filenames[idx]).name]), cv2.IMREAD_UNCHANGED)
+                gts.append(torch.from_numpy(gt.astype(np.int64)))
         scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
         scores["labels"] = selection.labels().cpu()
         scores["failures"] = failures

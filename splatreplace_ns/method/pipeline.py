@@ -209,6 +209,7 @@ class SplatReplacePipeline(VanillaPipeline):
         start = time.perf_counter()
         self.model.eval()
         self.begin_selection()
+        skipped: List[str] = []
         if self.should_wait_for_viewer():
             CONSOLE.log("[bold]Click one pixel per instance in the viewer, then press 'Confirm instances'")
             self.selection_controls.wait_for_confirm()
@@ -224,7 +225,9 @@ class SplatReplacePipeline(VanillaPipeline):
                     self.add_click(click)
                 except SelectionError as err:  # one bad click must not throw away the training run
                     CONSOLE.log(f"[bold yellow]skipped: {err}")
+                    skipped.append(str(err))
         report = self.finish_segmentation()
+        report["skipped_clicks"] = skipped  # also kept in self.segmentation_report
         report["time_s"] = time.perf_counter() - start  # also kept in self.segmentation_report
         self.model.train()
         return report
