@@ -152,6 +152,32 @@ def test_geodesic_split_gives_a_seedless_clump_to_its_nearest_side():
     assert (owner[:400][left[:, 0] < -0.2] == 0).all() and (owner[400:800][right[:, 0] > 0.2] == 1).all()
 
 
+def test_random_walk_split_cuts_at_the_colour_change_not_at_the_midpoint():
+    """Two touching boxes of different colours, the left one clicked at its far end and the right one next to
+    the contact: the geodesic cut (colour-weighted) still runs well inside the left box, the random walker's
+    nearly at the contact; a seedless clump beyond the right box goes to it."""
+    from splatreplace_ns.masks.clustering import geodesic_split, random_walk_split
+
+    rng = np.random.default_rng(0)
+    left = rng.uniform([-1.0, 0, 0], [0.0, 1, 1], (600, 3))
+    right = rng.uniform([0.0, 0, 0], [1.0, 1, 1], (600, 3))
+    clump = np.array([1.35, 0.5, 0.5]) + rng.normal(0, 1e-4, (30, 3))
+    means = np.concatenate([left, right, clump])
+    colours = np.concatenate([np.tile([0.8, 0.3, 0.2], (600, 1)), np.tile([0.6, 0.5, 0.3], (630, 1))])
+    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    seeds = [int(np.argmin(np.linalg.norm(left - [-0.9, 0.5, 0.5], axis=1))),
+             600 + int(np.argmin(np.linalg.norm(right - [0.1, 0.5, 0.5], axis=1)))]
+    truth = np.repeat([0, 1], [600, 630])
+    cfg = ClusteringConfig()
+    walk = random_walk_split(means, colours, seeds, spacing=0.1, cfg=cfg)
+    geodesic = geodesic_split(means, colours, seeds, spacing=0.1, cfg=cfg)  # same graph, same colour weight
+    assert (walk >= 0).all() and (walk[1200:] == 1).all()
+    assert (walk[600:] == 1).all()  # the right box is whole
+    assert (walk == truth).mean() > 0.93 and (walk == truth).mean() > (geodesic == truth).mean() + 0.05
+    # one seed: everything is its
+    assert (random_walk_split(means, colours, seeds[:1], spacing=0.1, cfg=cfg) == 0).all()
+
+
 def test_gaussians_near_ray_finds_the_surface_the_rendered_depth_missed():
     from splatreplace_ns.masks.clustering import gaussians_near_ray
 

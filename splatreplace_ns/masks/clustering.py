@@ -9,7 +9,7 @@ densely the base stage filled it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Literal, Sequence, Tuple
 
 import numpy as np
 
@@ -55,7 +55,14 @@ class ClusteringConfig:
     """Plane inliers within this many spacings of a clustered Gaussian join its cluster (an object's
     base and faces flush with a plane are plane inliers too). Off by default: on office the reclaimed
     floor around chair legs cost more than the feet gained (masks mIoU +0.01 without it)."""
-    split_neighbours: int = 8
+    split_method: Literal["geodesic", "random_walk"] = "random_walk"
+    """How a cluster holding several clicks is split: each point to the seed nearest along the kNN graph
+    (``geodesic``), or to the seed a random walk from it most likely reaches first (``random_walk``,
+    Grady 2006), which cuts at bottlenecks and colour changes rather than at the geodesic midpoint
+    (office masks mIoU 0.77 → 0.81 with 16 neighbours, `bench masks`)."""
+    split_seed_radius: float = 2.0
+    """``random_walk``: the seed of a click is every point within this many spacings of it."""
+    split_neighbours: int = 16
     """kNN graph degree when a cluster holding several clicks is split between them."""
     split_colour_weight: float = 10.0
     """Edge length factor per unit of RGB difference in that graph."""
@@ -340,8 +347,19 @@ def geodesic_split(
     Returns:
         [P] index into ``seeds`` (-1: not connected to any seed).
     """
-    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
+
+    graph = knn_graph(means, colours, spacing, cfg)
+    distances = dijkstra(graph, directed=False, indices=list(seeds))  # [S, P]
+    owner = np.argmin(distances, axis=0)
+    owner[~np.isfinite(distances.min(axis=0))] = -1
+    return adopt_unreached(means, owner, graph)
+
+
+def knn_graph(means: np.ndarray, colours: np.ndarray, spacing: float, cfg: ClusteringConfig):
+    """Symmetric kNN graph of [P, 3] points; edge length = distance in spacings × (1 + colour weight ×
+    RGB step). Returns a [P, P] scipy CSR matrix."""
+    from scipy.sparse import coo_matrix
     from scipy.spatial import cKDTree
 
     k = min(cfg.split_neighbours + 1, len(means))
@@ -349,11 +367,54 @@ def geodesic_split(
     rows = np.repeat(np.arange(len(means)), k - 1)
     cols = idx[:, 1:].ravel()
     colour_step = np.linalg.norm(colours[rows] - colours[cols], axis=-1)
-    weights = dist[:, 1:].ravel() / spacing * (1.0 + cfg.split_colour_weight * colour_step) + 1e-9
-    graph = coo_matrix((weights, (rows, cols)), shape=(len(means), len(means))).tocsr()
-    distances = dijkstra(graph, directed=False, indices=list(seeds))  # [S, P]
-    owner = np.argmin(distances, axis=0)
-    owner[~np.isfinite(distances.min(axis=0))] = -1
+    lengths = dist[:, 1:].ravel() / spacing * (1.0 + cfg.split_colour_weight * colour_step) + 1e-9
+    graph = coo_matrix((lengths, (rows, cols)), shape=(len(means), len(means))).tocsr()
+    return graph.maximum(graph.T)
+
+
+def random_walk_split(
+    means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], spacing: float, cfg: ClusteringConfig
+) -> np.ndarray:
+    """Splits one cluster among several seeds by the random walker (Grady 2006) on the kNN graph.
+
+    Each seed is the set of points within ``split_seed_radius`` spacings of its click; an edge's weight is
+    ``exp(-length)`` with the :func:`knn_graph` length, so the walk rarely crosses colour changes; every
+    point goes to the seed its walk most likely reaches first (one sparse Laplacian solve per seed).
+
+    Args:
+        means: [P, 3] points of the cluster; colours: [P, 3] in [0, 1].
+        seeds: point index of each click.
+
+    Returns:
+        [P] index into ``seeds``.
+    """
+    from scipy.sparse import diags
+    from scipy.sparse.csgraph import laplacian
+    from scipy.sparse.linalg import spsolve
+    from scipy.spatial import cKDTree
+
+    graph = knn_graph(means, colours, spacing, cfg)
+    weights = graph.copy()
+    weights.data = np.exp(-weights.data)
+    marked = np.full(len(means), -1, dtype=np.int64)
+    tree = cKDTree(means)
+    for j, seed in enumerate(seeds):  # later seeds do not overwrite earlier ones
+        near = np.asarray(tree.query_ball_point(means[seed], cfg.split_seed_radius * spacing), dtype=np.int64)
+        marked[near[marked[near] < 0]] = j
+        marked[seed] = j
+    free = np.flatnonzero(marked < 0)
+    owner = marked.copy()
+    if len(free):
+        lap = laplacian(weights).tocsr()
+        # a tiny leak keeps islands that no seed reaches solvable; they are adopted below
+        system = (lap[free][:, free] + diags(np.full(len(free), 1e-9))).tocsc()
+        fixed = np.flatnonzero(marked >= 0)
+        coupling = lap[free][:, fixed]
+        probabilities = np.stack([
+            spsolve(system, -(coupling @ (marked[fixed] == j).astype(np.float64))) for j in range(len(seeds))
+        ], axis=1)  # [F, S]
+        owner[free] = np.argmax(probabilities, axis=1)
+        owner[free[probabilities.max(axis=1) < 1e-6]] = -1
     return adopt_unreached(means, owner, graph)
 
 
@@ -421,7 +482,8 @@ def instance_ids(
                 "(same cluster, a few Gaussians apart); one click per instance"
             )
         _, seeds = cKDTree(means[members]).query(points, k=1)
-        owner = geodesic_split(means[members], colours[members], seeds, clustering.spacing, cfg)
+        split = random_walk_split if cfg.split_method == "random_walk" else geodesic_split
+        owner = split(means[members], colours[members], seeds, clustering.spacing, cfg)
         for j, p in enumerate(positions):
             ids[members[owner == j]] = p + 1
     return ids
