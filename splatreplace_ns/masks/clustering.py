@@ -299,7 +299,13 @@ def clusters_of_clicks(
                                             click.point.double().numpy(), cfg.click_radius * clustering.spacing,
                                             cfg.ray_depth_slack, k)]
         if len(near) == 0:
-            raise ClickError(f"{click.source}: no Gaussian of the base model lies at this point; click on an object")
+            gap = float(dist[0]) / clustering.spacing if len(dist) else float("inf")
+            raise ClickError(
+                f"{click.source}: no Gaussian of the base model lies at this point (the nearest solid one is "
+                f"{gap:.1f} spacings away, the limit is {cfg.click_radius:g}): empty space, or an object the base "
+                "model holds only sparsely (seen in few views); click it where the capture sees it well, or train "
+                "the base stage longer"
+            )
         values, counts = np.unique(clustering.labels[near], return_counts=True)
         winner = int(values[np.argmax(counts)])
         if winner == PLANE:
