@@ -178,6 +178,26 @@ def test_random_walk_split_cuts_at_the_colour_change_not_at_the_midpoint():
     assert (random_walk_split(means, colours, seeds[:1], spacing=0.1, cfg=cfg) == 0).all()
 
 
+def test_normal_weight_cuts_the_split_where_the_surface_turns():
+    """A horizontal plate and a vertical one of the same colour meeting at an edge (a chair's back against a
+    table's top), clicked far out on the plate and near the edge on the upright: without normals the cut runs
+    well into the plate, with them it runs along the edge."""
+    from splatreplace_ns.masks.clustering import random_walk_split
+
+    rng = np.random.default_rng(0)
+    plate = np.c_[rng.uniform(0, 1, (1500, 2)), np.zeros(1500)]  # z = 0, x in [0, 1]
+    upright = np.c_[np.ones(1500), rng.uniform(0, 1, 1500), rng.uniform(0, 1, 1500)]  # x = 1
+    means = np.concatenate([plate, upright])
+    colours = np.full_like(means, 0.5)
+    seeds = [int(np.argmin(np.linalg.norm(plate - [0.02, 0.5, 0.0], axis=1))),
+             1500 + int(np.argmin(np.linalg.norm(upright - [1.0, 0.5, 0.15], axis=1)))]
+    truth = np.repeat([0, 1], 1500)
+    plain = random_walk_split(means, colours, seeds, spacing=0.03, cfg=ClusteringConfig())
+    turned = random_walk_split(means, colours, seeds, spacing=0.03, cfg=ClusteringConfig(split_normal_weight=10.0))
+    assert (turned == truth).mean() > 0.88 and (turned == truth).mean() > (plain == truth).mean() + 0.1, (
+        (turned == truth).mean(), (plain == truth).mean())
+
+
 def test_gaussians_near_ray_finds_the_surface_the_rendered_depth_missed():
     from splatreplace_ns.masks.clustering import gaussians_near_ray
 

@@ -11,12 +11,13 @@ On a sim preset with the masks withheld (images, cameras, points and clicks only
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -26,6 +27,7 @@ import torch
 
 from splatreplace_ns.eval.segmentation import ground_truth_masks_by_name, score_views_from_clicks, segmentation_scores
 from splatreplace_ns.masks.capture import strip_ground_truth
+from splatreplace_ns.masks.clustering import ClusteringConfig
 from splatreplace_ns.bench.output import write_result_json
 
 NO_MASKED = "a downstream run reported no masked PSNR (no test view shows an instance)"
@@ -55,6 +57,8 @@ class BenchMasksConfig:
     sam_decoder: Optional[Path] = None
     border: str = "none"
     """Border cleanup of the geometric backend (none, grabcut, guided)."""
+    clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
+    """Clustering and split of the geometric backend (``splatreplace masks --clustering.*``)."""
     downstream: bool = True
     """Also train splat-replace on our masks and on the ground-truth masks."""
     downstream_base_iterations: int = 1000
@@ -228,7 +232,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         command = MasksCommand(
             capture, backend=backend, load_config=base_config, base_iterations=cfg.base_iterations,
             output_dir=cfg.out_dir / f"masks_{cfg.preset}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
-            border=BorderConfig(method=cfg.border),
+            border=BorderConfig(method=cfg.border), clustering=cfg.clustering,
         )
         report = make_masks(command)
         if base_config is None:
@@ -270,6 +274,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         "parameters": {
             "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
             "border": cfg.border, "boundary_tolerance": cfg.boundary_tolerance,
+            "clustering": dataclasses.asdict(cfg.clustering),
             "downstream_base_iterations": cfg.downstream_base_iterations,
             "downstream_contrastive_iterations": cfg.downstream_contrastive_iterations,
             "downstream_finetune_iterations": cfg.downstream_finetune_iterations,

@@ -66,6 +66,11 @@ class ClusteringConfig:
     """kNN graph degree when a cluster holding several clicks is split between them."""
     split_colour_weight: float = 10.0
     """Edge length factor per unit of RGB difference in that graph."""
+    split_normal_weight: float = 0.0
+    """Edge length factor per unit of ``1 − |cos|`` between the two points' local normals, so that the split
+    is cut where the surface turns (a chair's back against a table's edge). Off by default: on office, 10 with
+    colour weight 2 gave masks mIoU 0.850 (0.805 without), but two touching boxes that meet face to face
+    split worse, since their contact does not turn and every box edge does (unit tests)."""
     duplicate_radius: float = 3.0
     """Two clicks in one cluster closer than this many spacings are one object clicked twice (an error)."""
     seed: int = 0
@@ -364,7 +369,7 @@ def geodesic_split(
 
 def knn_graph(means: np.ndarray, colours: np.ndarray, spacing: float, cfg: ClusteringConfig):
     """Symmetric kNN graph of [P, 3] points; edge length = distance in spacings × (1 + colour weight ×
-    RGB step). Returns a [P, P] scipy CSR matrix."""
+    RGB step + normal weight × (1 − |cos| of the local normals)). Returns a [P, P] scipy CSR matrix."""
     from scipy.sparse import coo_matrix
     from scipy.spatial import cKDTree
 
@@ -373,7 +378,11 @@ def knn_graph(means: np.ndarray, colours: np.ndarray, spacing: float, cfg: Clust
     rows = np.repeat(np.arange(len(means)), k - 1)
     cols = idx[:, 1:].ravel()
     colour_step = np.linalg.norm(colours[rows] - colours[cols], axis=-1)
-    lengths = dist[:, 1:].ravel() / spacing * (1.0 + cfg.split_colour_weight * colour_step) + 1e-9
+    factor = 1.0 + cfg.split_colour_weight * colour_step
+    if cfg.split_normal_weight > 0:
+        normals = local_normals(means, spacing)
+        factor = factor + cfg.split_normal_weight * (1.0 - np.abs(np.sum(normals[rows] * normals[cols], axis=-1)))
+    lengths = dist[:, 1:].ravel() / spacing * factor + 1e-9
     graph = coo_matrix((lengths, (rows, cols)), shape=(len(means), len(means))).tocsr()
     return graph.maximum(graph.T)
 
