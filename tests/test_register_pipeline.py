@@ -198,3 +198,35 @@ def test_faint_off_surface_gaussians_do_not_pull_icp(tiny):
     everything = register_instance(faint, replace(tiny["gaussians"][2], id=2), replace(cfg, min_opacity=0.0))
     print(f"ICP and scores on every Gaussian: {everything.message}")
     assert everything.fitness < res.fitness - 0.1  # the faint layer, scored too, dilutes the fitness
+
+
+def test_multistart_poses_turn_about_up_and_match_centroids():
+    from splatreplace_ns.register.pipeline import multistart_poses
+
+    rng = np.random.default_rng(1)
+    src, tgt = rng.normal(size=(50, 3)), rng.normal(size=(40, 3)) + 5.0
+    up = np.array([0.1, -0.2, 1.0])
+    poses = multistart_poses(src, tgt, 12, up)
+    assert len(poses) == 12 and multistart_poses(src, tgt, 0) == [] and multistart_poses(src[:0], tgt, 12) == []
+    angles = []
+    for T in poses:
+        R = T[:3, :3]
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R @ up, up)  # a turn about the up axis
+        assert np.allclose(R @ src.mean(0) + T[:3, 3], tgt.mean(0))
+        angles.append(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+    assert np.allclose(sorted(angles), sorted([min(30 * k, 360 - 30 * k) for k in range(12)]), atol=1e-6)
+
+
+def test_multistart_registers_when_no_view_pair_gives_a_pose(tiny):
+    """With PnP unable to pose any view pair (an inlier count no pair reaches), the instance fails without
+    multi-start turns and is recovered with them: ICP from 12 turns about the up axis, picked by colour."""
+    src, tpl = replace(tiny["gaussians"][1], id=1), replace(tiny["gaussians"][2], id=2)
+    no_pnp = RegistrationConfig(**FAST, min_inliers=10**6, multistart_turns=0)
+    failed = register_instance(src, tpl, no_pnp)
+    assert not failed.success and "no view pair gave a pose" in failed.message
+    res = register_instance(src, tpl, replace(no_pnp, multistart_turns=12))
+    assert res.success, res.message
+    rot_err, t_err = pose_errors(res.transform, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], "crate")
+    print(f"multi-start only: rot {rot_err:.3f} deg, trans {100 * t_err:.3f} %, {res.message}")
+    assert rot_err < 1.0 and t_err < 0.01, res.message

@@ -47,7 +47,7 @@ from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationCon
 from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
-DEFAULT_ROWS: Tuple[str, ...] = ("ours", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp")
+DEFAULT_ROWS: Tuple[str, ...] = ("ours", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp")
 
 
 @dataclass

@@ -92,6 +92,10 @@ class RegistrationConfig:
         min_fitness: (correct poses: 0.24–0.99 on the sim presets) the final ICP/FPFH fitness (fraction of
             source centres with a template centre within
             the finest distance) below which a result counts as a failure.
+        multistart_turns: with select="photometric", ICP also starts from this many turns about ``up_axis``
+            (centroids aligned) and those alignments compete with the PnP ones on the same colour score.
+            The worst-seen copies are the ones whose few matches pose no view pair or a wrong one; 0: off.
+        up_axis: the scene's up direction in the model's frame (+z after nerfstudio's "up" orientation).
         seed: RANSAC seed.
     """
 
@@ -123,6 +127,8 @@ class RegistrationConfig:
     min_opacity: float = 0.5
     min_solid_points: int = 200
     min_fitness: float = 0.2
+    multistart_turns: int = 12
+    up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -398,6 +404,35 @@ def _refine(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, radius: float, c
 _SH_C0 = 0.28209479177387814
 
 
+def multistart_poses(src: np.ndarray, tgt: np.ndarray, steps: int, up=(0.0, 0.0, 1.0)) -> list[np.ndarray]:
+    """Initial poses that put the source's centroid on the template's, turned about the up axis.
+
+    Copies of a repeated element stand on the same floor, so they differ by a turn about the vertical;
+    ``steps`` turns spaced 360°/steps apart put one start within 180°/steps of the true turn, inside ICP's
+    basin. (Turns about other axes are left out: they let upside-down poses of near-symmetric shapes in.)
+
+    Args:
+        src: (N, 3), tgt: (M, 3) centres; steps: number of turns (0: none); up: (3,) the up axis.
+    Returns:
+        list of (4, 4) source → template transforms.
+    """
+    if steps <= 0 or len(src) == 0 or len(tgt) == 0:
+        return []
+    u = np.asarray(up, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    ux = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    mu_s, mu_t = src.mean(axis=0), tgt.mean(axis=0)
+    out = []
+    for k in range(steps):
+        theta = 2.0 * np.pi * k / steps
+        R = np.eye(3) + np.sin(theta) * ux + (1.0 - np.cos(theta)) * (ux @ ux)  # Rodrigues
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = mu_t - R @ mu_s
+        out.append(T)
+    return out
+
+
 def _base_rgb(inst: InstanceGaussians) -> np.ndarray:
     """(N, 3) view-independent colour: the RGB itself, or the SH DC term mapped like gsplat (c0·C + 0.5)."""
     c = _np(inst.colors)
@@ -516,15 +551,19 @@ def register_instance(
             reasons.append(f"pair ({i},{j}): PnP {rel.pnp.reason}")
             continue
         candidates.append((rel.num_inliers, i, j, rel.transform))
+    _, radius = instance_sphere(template)
+    src_keep = source.solid(cfg.min_opacity, cfg.min_solid_points)
+    tpl_keep = template.solid(cfg.min_opacity, cfg.min_solid_points)
+    src_c, tpl_c = source.centres()[src_keep], template.centres()[tpl_keep]
+    if cfg.select == "photometric" and cfg.icp:  # the starts are 360°/turns apart: only ICP brings them home
+        # turn k about the up axis is stored as the view pair (-1, k)
+        starts = multistart_poses(src_c, tpl_c, cfg.multistart_turns, cfg.up_axis)
+        candidates += [(0, -1, k, T) for k, T in enumerate(starts)]
     if not candidates:
         detail = "; ".join(reasons[:3]) if reasons else "no view pairs"
         return fail(f"registration failed, no view pair gave a pose ({detail})")
 
     candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
-    _, radius = instance_sphere(template)
-    src_keep = source.solid(cfg.min_opacity, cfg.min_solid_points)
-    tpl_keep = template.solid(cfg.min_opacity, cfg.min_solid_points)
-    src_c, tpl_c = source.centres()[src_keep], template.centres()[tpl_keep]
     if cfg.select == "inliers":  # the paper: the pair with the most PnP inliers, then ICP
         n_inl, i, j, coarse = candidates[0]
         T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
@@ -541,7 +580,10 @@ def register_instance(
                 best = (key, n_inl, i, j, coarse, T, fit)
         (score, _), n_inl, i, j, coarse, T, fit = best
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
-    msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
+    if i < 0:
+        msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
+    else:
+        msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
     msg += (", ICP" if cfg.icp else "") + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
