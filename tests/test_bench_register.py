@@ -1,6 +1,7 @@
 """``splatreplace bench register``: ground-truth labelling of Gaussians, pose errors, and the bench end to end
 on the ``tiny`` preset (64×48, a few hundred iterations)."""
 
+from dataclasses import replace
 import json
 import math
 
@@ -248,3 +249,16 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
         if twin["success"]:
             assert entry["rot_err_deg"] == pytest.approx(twin["rot_err_deg"], abs=1e-6)
             assert entry["trans_err_rel"] == pytest.approx(twin["trans_err_rel"], abs=1e-9)
+
+
+def test_row_settings_differ_only_where_the_row_says():
+    from splatreplace_ns.bench.register import BenchRegisterConfig, row_configs
+
+    rows = dict(row_configs(BenchRegisterConfig(), ("ours", "no_multistart", "no_icp", "fpfh")))
+    ours = rows["ours"]
+    assert ours.multistart_turns > 0 and ours.icp and ours.method == "ours"
+    assert rows["no_multistart"] == replace(ours, multistart_turns=0)
+    assert rows["no_icp"] == replace(ours, icp=False)
+    assert rows["fpfh"] == replace(ours, method="fpfh")
+    with pytest.raises(ValueError, match="no_multistart"):
+        row_configs(BenchRegisterConfig(), ("nonsense",))

@@ -390,6 +390,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
     for row in rows:
         if row == "ours":
             out.append(("ours", replace(base, method="ours")))
+        elif row == "no_multistart":  # the paper's candidates: PnP poses of the top-k view pairs only
+            out.append((row, replace(base, method="ours", multistart_turns=0)))
         elif row == "no_virtual_views":
             out.append((row, replace(base, method="no_virtual_views")))
         elif row == "no_icp":
@@ -409,7 +411,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp"
             )
     return out
