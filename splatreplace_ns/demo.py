@@ -59,6 +59,9 @@ class DemoCommand:
     """Use this dataset (with clicks.json and instance masks) instead of generating one."""
     json: Optional[Path] = None
     """Also write every printed figure to this JSON file."""
+    sequential: bool = False
+    """Train the baseline after ours instead of beside it (by default, on a CPU with two or more cores, the
+    baseline trains in a second process at the same time, each run on half the cores)."""
 
     def main(self) -> Dict:
         from splatreplace_ns.bench.template import train_ours_and_baseline
@@ -74,13 +77,14 @@ class DemoCommand:
                 make_scene(self.preset, data, res=self.res, seed=0, n_train=self.n_train, n_test=self.n_test)
         sim_s = time.perf_counter() - start
         B, C, F = self.base_iterations, self.contrastive_iterations, self.finetune_iterations
-        CONSOLE.print(f"[bold]Training splat-replace ({B} base + {C} contrastive + {F} fine-tuning iterations), "
-                      f"then the 3DGS* baseline ({B + C + F} iterations)")
-        pair = train_ours_and_baseline(data, self.out / "runs", B, C, F)
+        together = "beside it (in a second process; its log: " + str(self.out / "runs" / "baseline.log") + ")"
+        CONSOLE.print(f"[bold]Training splat-replace ({B} base + {C} contrastive + {F} fine-tuning iterations) and "
+                      f"the 3DGS* baseline ({B + C + F} iterations) {'after it' if self.sequential else together}")
+        pair = train_ours_and_baseline(data, self.out / "runs", B, C, F, parallel=not self.sequential)
 
         figure = self.out / "side_by_side.png"
         n_test = len(pair["ours_trainer"].pipeline.datamanager.eval_dataset)
-        side_by_side({"baseline": pair["baseline_trainer"].pipeline, "ours": pair["ours_trainer"].pipeline},
+        side_by_side({"baseline": pair["baseline_pipeline"], "ours": pair["ours_trainer"].pipeline},
                      list(range(min(n_test, 4))), figure)
 
         table = Table(title="splat-replace demo: test views (same total iterations)")
@@ -113,6 +117,7 @@ class DemoCommand:
             "figure": str(figure),
             "time_s": {"sim": sim_s, **pair["times"], "total": total_s},
             "iterations": {"base": B, "contrastive": C, "finetune": F, "baseline": B + C + F},
+            "baseline_beside_ours": pair["parallel"],
             "config": str(config),
         }
         if self.json is not None:
