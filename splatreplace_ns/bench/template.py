@@ -174,6 +174,8 @@ def train_ours_and_baseline(
     if worker is not None:
         from splatreplace_ns.bench.register import load_pipeline
 
+        if worker.is_alive():
+            print(f"ours is done; waiting for the baseline's run beside it (progress in {out / 'baseline.log'})", flush=True)
         done = _wait_for(worker, queue)
         worker.join()
         baseline, times["baseline"], n_base = done["metrics"], done["time_s"], done["gaussians"]
