@@ -89,9 +89,9 @@ def _baseline_worker(data: str, out: str, iterations: int, threads: int, log_pat
     """Trains and scores the 3DGS* baseline in a process of its own (its console output goes to ``log_path``)."""
     from splatreplace_ns.method.train import make_trainer_config
 
-    log = open(log_path, "w")
-    os.dup2(log.fileno(), 1)
-    os.dup2(log.fileno(), 2)
+    with open(log_path, "w") as log:  # the descriptors 1 and 2 keep the file open after this block
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
     torch.set_num_threads(threads)
     config = make_trainer_config(Path(data), Path(out), iterations, experiment_name="baseline", progress=True)
     trainer, seconds = _run(config)

@@ -418,14 +418,13 @@ def multistart_poses(src: np.ndarray, tgt: np.ndarray, steps: int, up=(0.0, 0.0,
     """
     if steps <= 0 or len(src) == 0 or len(tgt) == 0:
         return []
+    from scipy.spatial.transform import Rotation
+
     u = np.asarray(up, dtype=np.float64)
     u = u / np.linalg.norm(u)
-    ux = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
     mu_s, mu_t = src.mean(axis=0), tgt.mean(axis=0)
     out = []
-    for k in range(steps):
-        theta = 2.0 * np.pi * k / steps
-        R = np.eye(3) + np.sin(theta) * ux + (1.0 - np.cos(theta)) * (ux @ ux)  # Rodrigues
+    for R in Rotation.from_rotvec(np.outer(2.0 * np.pi * np.arange(steps) / steps, u)).as_matrix():
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = mu_t - R @ mu_s
