@@ -89,7 +89,7 @@ def test_normals_face_the_cameras_that_saw_them_and_away_from_the_centre_elsewhe
     viewmats = torch.stack([c[0] for c in cams])
     Ks = torch.stack([c[1] for c in cams])
     depths = torch.stack([_cube_depth(viewmats[v], Ks[v], 64, 48) for v in range(3)])
-    votes = camera_votes(means, viewmats, Ks, depths[..., None], (depths > 0).float()[..., None], depth_tolerance=0.05)
+    votes = camera_votes(means, viewmats, Ks, 64, 48, depths, depth_tolerance=0.05)
     front = truth[:, 0] > 0.5
     back = truth[:, 0] < -0.5
     assert (votes[torch.from_numpy(back)].norm(dim=-1) == 0).all()  # hidden behind the front face

@@ -374,17 +374,16 @@ class SplatReplacePipeline(VanillaPipeline):
         labels = model.instance_labels.to(model.means.device)
         cameras = self.datamanager.train_dataset.cameras
         ones = torch.ones(model.num_points, 1, device=model.means.device)
-        depths, alphas = [], []
+        depths = []
         for idx in range(len(cameras)):
             _, alpha, depth = model.render_features(cameras[idx : idx + 1].to(self.device), ones)
-            depths.append(depth)
-            alphas.append(alpha)
+            depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])))
         rows = labels > 0
         votes = torch.zeros_like(model.means.detach())
         votes[rows] = camera_votes(
             model.means.detach()[rows], get_viewmat(cameras.camera_to_worlds.to(self.device)),
-            cameras.get_intrinsics_matrices().to(self.device), torch.stack(depths), torch.stack(alphas),
-            self.config.normal_depth_tolerance,
+            cameras.get_intrinsics_matrices().to(self.device), int(cameras.width[0]), int(cameras.height[0]),
+            torch.stack(depths), self.config.normal_depth_tolerance,
         )
         return oriented_normals(model.means.detach(), labels, votes)
 

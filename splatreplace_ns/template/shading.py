@@ -11,6 +11,8 @@ light gives faces turned that way, learned from the copies whose faces were seen
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -48,30 +50,37 @@ def shade_sh(sh: Tensor, factors: Tensor) -> Tensor:
 
 
 def camera_votes(
-    means: Tensor, viewmats: Tensor, Ks: Tensor, depths: Tensor, alphas: Tensor, depth_tolerance: float = 0.05,
+    means: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+    depths: Optional[Tensor] = None, depth_tolerance: float = 0.05, near: float = 0.01,
 ) -> Tensor:
     """Sum of the unit directions from each Gaussian to the cameras that see it.
 
-    A view sees a centre when :func:`splatreplace_ns.masks.lifting.visible_by_depth` says so: in front,
-    inside the image and not behind the rendered surface by more than ``depth_tolerance`` (relative); any
-    rendered coverage counts as a surface (a faint fringe in front of a Gaussian hides it too).
+    A view sees a centre in front of it (``z > near``), inside the image and, with ``depths``, not behind
+    the rendered surface by more than ``depth_tolerance`` (relative).
 
     Args:
         means: [N, 3] world centres; viewmats: [V, 4, 4] world→camera (OpenCV); Ks: [V, 3, 3].
-        depths, alphas: [V, H, W, 1] rendered depth and opacity of each view.
+        depths: [V, H, W] rendered depth (0 = empty) or None.
     Returns:
         [N, 3] (zero rows: seen by no view).
     """
-    from splatreplace_ns.masks.lifting import visible_by_depth
-
     points = means.detach().double()
     votes = torch.zeros_like(points)
+    ones = torch.ones_like(points[:, :1])
     for v in range(viewmats.shape[0]):
         w2c = viewmats[v].double().to(points.device)
-        seen = visible_by_depth(points, w2c, Ks[v].double().to(points.device), depths[v].double().to(points.device),
-                                alphas[v].to(points.device), depth_tolerance, min_alpha=1e-6)
-        to_camera = (-w2c[:3, :3].T @ w2c[:3, 3]) - points
-        votes += torch.nn.functional.normalize(to_camera, dim=-1) * seen[:, None]
+        cam = torch.cat((points, ones), dim=-1) @ w2c.T
+        z = cam[:, 2]
+        pix = cam[:, :3] @ Ks[v].double().to(points.device).T
+        u, r = pix[:, 0] / z.clamp_min(near), pix[:, 1] / z.clamp_min(near)
+        seen = (z > near) & (u >= 0) & (u < width) & (r >= 0) & (r < height)
+        if depths is not None:
+            surface = depths[v].double().to(points.device)[r.clamp(0, height - 1).long(), u.clamp(0, width - 1).long()]
+            seen &= (surface <= 0) | (z <= surface * (1.0 + depth_tolerance))
+        centre = -w2c[:3, :3].T @ w2c[:3, 3]
+        to_camera = centre - points
+        to_camera = to_camera / to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        votes += to_camera * seen[:, None]
     return votes.to(means.dtype)
 
 
