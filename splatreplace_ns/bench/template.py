@@ -6,8 +6,7 @@ On one synthetic preset, with the same total number of iterations for both:
 * ``baseline`` — 3DGS* only (``base + contrastive + finetune`` base iterations);
 * ablations, each resumed from ours' checkpoint at the end of segmentation (so they share base, features and
   segmentation and differ only after it): ``shared_only`` (λ = 1, no offsets), ``offsets_only`` (λ = 0, no
-  shared colour), ``no_pose_refinement`` (instance poses frozen at the registration result), ``no_shading``
-  (the copies not shaded by the scene's light, i.e. the paper's colour model alone).
+  shared colour), ``no_pose_refinement`` (instance poses frozen at the registration result).
 
 Test-view PSNR/SSIM on full images and on the masked repeated regions (union of the ground-truth instance
 masks), wall time of every run, and the export sizes of ours.
@@ -27,7 +26,7 @@ import torch
 from splatreplace_ns.bench.output import write_result_json
 from splatreplace_ns.bench.scenes import cached_scene
 
-ABLATIONS = ("shared_only", "offsets_only", "no_pose_refinement", "no_shading")
+ABLATIONS = ("shared_only", "offsets_only", "no_pose_refinement")
 METRICS = ("psnr", "psnr_masked", "ssim", "ssim_masked")
 
 
@@ -52,8 +51,7 @@ class BenchTemplateConfig:
     finetune_iterations: int = 2000
     """Shared-template fine-tuning iterations."""
     ablations: Tuple[str, ...] = ABLATIONS
-    """Ablations to run (each costs one fine-tuning run): shared_only, offsets_only, no_pose_refinement,
-    no_shading."""
+    """Ablations to run (each costs one fine-tuning run): shared_only, offsets_only, no_pose_refinement."""
     data_root: Path = Path("benchmarks/data")
     """Generated scenes are kept here and reused."""
     out_dir: Path = Path("benchmarks/runs")
@@ -222,8 +220,6 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
             ab_cfg.pipeline.model.template_mix = 0.0
         elif name == "no_pose_refinement":
             ab_cfg.optimizers["instance_poses"]["optimizer"].lr = 0.0
-        elif name == "no_shading":
-            ab_cfg.pipeline.model.template_shading = False
         trainer, seconds = _run(ab_cfg)
         ablations[name] = {**test_metrics(trainer.pipeline), "time_s": seconds}
         del trainer

@@ -82,8 +82,6 @@ def splat_replace_trainer_config(
             "sh_offsets": _adam(0.0025),
             "instance_poses": _adam(1e-4),
             "template_class": _adam(0.0),  # a label carried through densification, never optimised
-            "template_normal": _adam(0.0),  # a template-space normal carried along, never optimised
-            "instance_shading": _adam(0.002),
             "exposure": _adam(1e-3),
             "camera_opt": {
                 "optimizer": FusedAdamOptimizerConfig(lr=1e-4, eps=1e-15),

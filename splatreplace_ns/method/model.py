@@ -118,11 +118,6 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Grid cells per template radius of the merge (larger: finer grid, more Gaussians kept)."""
     offset_l1_lambda: float = 0.01
     """Weight of the L1 penalty that keeps per-instance SH offsets small."""
-    template_shading: bool = True
-    """Shade each copy of a template by the scene's light through the copy's turn: every template Gaussian has
-    an outward normal, and its colour is multiplied by exp(W · n_world) with W [3, 3] learned for the scene
-    (splatreplace_ns.template.shading). A face a copy was never seen on then gets the brightness of faces
-    turned that way in the copies that were seen. Off: the paper's colour model alone."""
     finetune_densify: bool = False
     """Densify and prune template and background Gaussians during fine-tuning (statistics summed over instances).
     Off by default: every Gaussian added to a template is rendered once per instance, which on CPU made
@@ -182,13 +177,10 @@ class SplatReplaceModel(SplatfactoModel):
                 # per-instance SH offsets [N, S, K, 3]; S = 0 until the templates are built
                 "template_class": Parameter(torch.zeros(num_points, 1)),
                 "sh_offsets": Parameter(torch.zeros(num_points, 0, dim_sh, 3)),
-                # outward normal of each template Gaussian in template space (0 elsewhere; not optimised)
-                "template_normal": Parameter(torch.zeros(num_points, 3)),
             }
         )
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(torch.zeros(0, 6))  # per instance (ω, δt), see template.compose
-        self.instance_shading = Parameter(torch.zeros(3, 3))  # W of template.shading, one row per channel
         self.registration: Dict[int, Dict] = {}
         self.finetune_start: Optional[int] = None
         self.base_gaussians = 0  # Gaussians before the templates were built (for export size reports)
@@ -248,7 +240,6 @@ class SplatReplaceModel(SplatfactoModel):
         groups["features_contrastive"] = [self.gauss_params["features_contrastive"]]
         groups["template_class"] = [self.gauss_params["template_class"]]
         groups["sh_offsets"] = [self.gauss_params["sh_offsets"]]
-        groups["template_normal"] = [self.gauss_params["template_normal"]]
         return groups
 
     def step_cb(self, optimizers, step):
@@ -263,8 +254,6 @@ class SplatReplaceModel(SplatfactoModel):
                 current = self.gauss_params[name]
             elif name == "instance_poses":
                 current = self.instance_pose_delta
-            elif name == "instance_shading":
-                current = self.instance_shading
             else:
                 continue
             for group in optimizer.param_groups:
@@ -321,8 +310,6 @@ class SplatReplaceModel(SplatfactoModel):
             self.instance_pose_delta = Parameter(torch.zeros_like(state_dict["instance_pose_delta"], device=self.device))
         else:
             state_dict["instance_pose_delta"] = self.instance_pose_delta.detach().clone()
-        if "instance_shading" not in state_dict:  # checkpoints from before shading: no shading
-            state_dict["instance_shading"] = torch.zeros_like(self.instance_shading)
         self.step = 30000
         torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
 
@@ -330,11 +317,6 @@ class SplatReplaceModel(SplatfactoModel):
     @property
     def has_templates(self) -> bool:
         return self.stage == "finetune" and len(self.instance_table.ids) > 0
-
-    @property
-    def shades_templates(self) -> bool:
-        """Whether copies are shaded (template_shading; needs SH colours, whose DC term the shading scales)."""
-        return self.config.template_shading and self.config.sh_degree > 0
 
     def composed_scene(self) -> ComposedScene:
         """The replaced scene: background + every instance's posed copy of its template (world frame)."""
@@ -348,8 +330,6 @@ class SplatReplaceModel(SplatfactoModel):
             self.gauss_params["template_class"].detach()[:, 0].round().long(),
             table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
             lam=self.config.template_mix,
-            normals=self.gauss_params["template_normal"].detach() if self.shades_templates else None,
-            shading=self.instance_shading if self.shades_templates else None,
         )
 
     @torch.no_grad()
@@ -372,8 +352,8 @@ class SplatReplaceModel(SplatfactoModel):
                 value = baked[name]
             elif name == "sh_offsets":
                 value = param.new_zeros((len(scene.means), 0) + tuple(param.shape[2:]))
-            elif name in ("template_class", "template_normal"):
-                value = param.new_zeros((len(scene.means),) + tuple(param.shape[1:]))
+            elif name == "template_class":
+                value = param.new_zeros(len(scene.means), 1)
             else:
                 value = param[scene.param_index]
             self.gauss_params[name] = Parameter(value.detach().clone())
@@ -466,7 +446,6 @@ class SplatReplaceModel(SplatfactoModel):
         if self.config.use_exposure_correction:
             groups["exposure"] = [self.exposure]
         groups["instance_poses"] = [self.instance_pose_delta]
-        groups["instance_shading"] = [self.instance_shading]
         return groups
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:

@@ -35,7 +35,6 @@ from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrasti
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import masks_from_rendered_features
 from splatreplace_ns.template.build import build_templates
-from splatreplace_ns.template.shading import camera_votes, oriented_normals
 from splatreplace_ns.viewer.rays import ray_camera
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
 
@@ -71,9 +70,6 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     contrastive: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    normal_depth_tolerance: float = 0.05
-    """Relative depth margin of the visibility test that turns the template normals toward the cameras
-    (model.template_shading)."""
 
     @property
     def total_iterations(self) -> int:
@@ -341,10 +337,7 @@ class SplatReplacePipeline(VanillaPipeline):
         }
         # template space of a class = the world frame of the instance its registrations map onto
         templates = {classes[iid]: int(r["template"]) for iid, r in model.registration.items() if r["success"]}
-        params = {name: p.detach() for name, p in model.gauss_params.items()
-                  if name not in ("template_class", "sh_offsets", "template_normal")}
-        if model.shades_templates:
-            params["template_normal"] = self.instance_normals()
+        params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
         new_params, table = build_templates(
             params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
             merge=model.config.template_union == "merge", merge_cells_per_radius=model.config.template_merge_cells,
@@ -365,27 +358,6 @@ class SplatReplacePipeline(VanillaPipeline):
             f"[bold]shared templates: {len(table.classes)} classes, {len(table.ids)} instances, "
             f"{model.num_points} stored Gaussians; fine-tuning for {self.config.finetune_iterations} steps"
         )
-
-    @torch.no_grad()
-    def instance_normals(self) -> torch.Tensor:
-        """[N, 3] outward world normals of the segmented instances' Gaussians (0 on the background), turned
-        toward the training cameras that see each one (visibility from the rendered depth)."""
-        model = self.model
-        labels = model.instance_labels.to(model.means.device)
-        cameras = self.datamanager.train_dataset.cameras
-        ones = torch.ones(model.num_points, 1, device=model.means.device)
-        depths = []
-        for idx in range(len(cameras)):
-            _, alpha, depth = model.render_features(cameras[idx : idx + 1].to(self.device), ones)
-            depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])))
-        rows = labels > 0
-        votes = torch.zeros_like(model.means.detach())
-        votes[rows] = camera_votes(
-            model.means.detach()[rows], get_viewmat(cameras.camera_to_worlds.to(self.device)),
-            cameras.get_intrinsics_matrices().to(self.device), int(cameras.width[0]), int(cameras.height[0]),
-            torch.stack(depths), self.config.normal_depth_tolerance,
-        )
-        return oriented_normals(model.means.detach(), labels, votes)
 
     def _finetune_strategy(self):
         """Densification for the templates: no opacity reset (the scene is already trained), refinement

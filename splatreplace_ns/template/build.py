@@ -129,9 +129,8 @@ def build_templates(
 
     Args:
         params: stored Gaussians (N): means [N, 3], quats [N, 4], scales [N, 3] (log), opacities [N, 1]
-            (logit), features_dc [N, 3], features_rest [N, K-1, 3], optionally template_normal [N, 3] (world
-            outward normals of the instance Gaussians: turned into template space, zeroed on the background),
-            and any other per-Gaussian tensors (carried along unchanged).
+            (logit), features_dc [N, 3], features_rest [N, K-1, 3], and any other per-Gaussian tensors
+            (carried along unchanged).
         labels: [N] long instance id per Gaussian (0 = background).
         instance_classes: {instance id: class name} of the segmented instances.
         transforms: {instance id: [4, 4] float (template ≈ T · instance, world)} for every *registered*
@@ -159,8 +158,6 @@ def build_templates(
     chunks: List[Dict[str, Tensor]] = []
     bg = {k: v[background] for k, v in params.items()}
     bg["template_class"] = torch.zeros(int(background.sum()), 1, dtype=dtype, device=device)
-    if "template_normal" in bg:  # only template Gaussians are shaded
-        bg["template_normal"] = torch.zeros_like(bg["template_normal"])
     chunks.append(bg)
 
     ids, cls_idx, slots, q0, t0 = [], [], [], [], []
@@ -178,8 +175,6 @@ def build_templates(
             means, quats, sh = transform_gaussians(T, part["means"], part["quats"], sh)
             shared = sh / lam if lam > 0 else sh
             part.update(means=means, quats=quats, features_dc=shared[:, 0], features_rest=shared[:, 1:])
-            if "template_normal" in part:  # outward normals turn with the instance into template space
-                part["template_normal"] = part["template_normal"] @ T[:3, :3].T
             part["template_class"] = torch.full((len(means), 1), float(c), dtype=dtype, device=device)
             class_parts.append(part)
             pose = torch.linalg.inv(T)  # template space → this instance in the world

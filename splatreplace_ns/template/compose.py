@@ -4,8 +4,7 @@ The scene after registration is stored as one set of Gaussians: background Gauss
 world coordinates and, per class ``c ≥ 1``, template Gaussians in *template space* (the world frame of
 the class's template instance). Every instance ``i`` of class ``c`` is a reference to that template: a
 pose ``P_i`` (template space → world) and per-Gaussian SH offsets in its slot ``s_i``. Its colour is
-``c = λ c_shared + (1 − λ) c_offset`` (λ = 0.8), optionally shaded by the scene's light through the
-copy's turn (:mod:`splatreplace_ns.template.shading`).
+``c = λ c_shared + (1 − λ) c_offset`` (λ = 0.8).
 
 Quaternions are wxyz. Poses are ``q_i = exp(ω_i) ⊗ q0_i``, ``t_i = t0_i + δt_i`` with the learnable
 ``(ω_i, δt_i)`` starting at zero: a stable parametrisation (no normalisation drift, no gimbal lock,
@@ -24,7 +23,6 @@ from torch import Tensor
 
 from splatreplace_ns.render.projection import quat_to_rotmat
 from splatreplace_ns.render.sh import num_sh_bases, sh_basis
-from splatreplace_ns.template.shading import shade_sh, shading_factors
 
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
@@ -153,8 +151,6 @@ def compose_scene(
     pose_t: Tensor,
     lam: float = 0.8,
     sh_degree: Optional[int] = None,
-    normals: Optional[Tensor] = None,
-    shading: Optional[Tensor] = None,
 ) -> ComposedScene:
     """Places every instance's copy of its class template into the world.
 
@@ -167,9 +163,6 @@ def compose_scene(
         pose_q [I, 4], pose_R [I, 3, 3], pose_t [I, 3]: template space → world (see :func:`instance_poses`).
         lam: mixing weight λ.
         sh_degree: degree used for the SH rotation (default: from K).
-        normals: [N, 3] outward template-space normals of the template Gaussians, and ``shading`` [3, 3]:
-            with both given, each instance's colours are shaded by its normals turned into the world
-            (:mod:`splatreplace_ns.template.shading`); None: no shading (the paper's model).
     Returns:
         :class:`ComposedScene` with M = N_background + Σ_i N_{class(i)} Gaussians.
     """
@@ -206,9 +199,6 @@ def compose_scene(
     if K > 1:  # SH rotation: one [K, K] matrix per instance, applied to its block of rows
         rot = sh_rotation(pose_R[kept_t], degree)[..., :K, :K]  # [I', K, K]
         coeffs = torch.cat([torch.einsum("kl,nlc->nkc", rot[k], block) for k, block in enumerate(coeffs.split(counts))])
-    if normals is not None and shading is not None:
-        normals_world = torch.einsum("mij,mj->mi", R_rows, normals[inst_rows].to(R_rows))
-        coeffs = shade_sh(coeffs, shading_factors(normals_world, shading.to(coeffs)))
     return ComposedScene(
         torch.cat((means[background], means_inst)), torch.cat((quats[background], quats_inst)),
         log_scales[param_index], logit_opacities[param_index], torch.cat((sh[background], coeffs)),

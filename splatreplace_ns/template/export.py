@@ -5,8 +5,7 @@ bakes the composed scene into plain Gaussians (``SplatReplaceModel.bake_replaced
 viewer shows the replaced scene.
 
 The instanced file (``.npz``) stores what the method actually learned: the background Gaussians, one
-template per class in template space, and per instance its pose and SH offsets (float16), plus the
-template normals (float16) and the scene's shading weights when the run shades its copies. Loading it
+template per class in template space, and per instance its pose and SH offsets (float16). Loading it
 with :func:`load_instanced` and :meth:`InstancedScene.compose` gives the same Gaussians as the model.
 """
 
@@ -53,14 +52,9 @@ class InstancedScene:
             rows = torch.nonzero(gauss_class == cls[i]).squeeze(-1)
             offsets[rows, slot[i]] = a[f"offsets_{int(ids[i])}"].float()
         q, R, t = instance_poses(a["pose_q"].float(), a["pose_t"].float(), torch.zeros(len(ids), 6))
-        normals, shading = None, None
-        if "shading" in a:  # files written with template shading: normals of the template Gaussians only
-            normals = torch.zeros(n, 3)
-            normals[gauss_class > 0] = a["normals"].float()
-            shading = a["shading"].float()
         return compose_scene(
             a["means"].float(), a["quats"].float(), a["scales"].float(), a["opacities"].float(), a["sh"].float(),
-            offsets, gauss_class, cls, slot, ids, q, R, t, lam=float(a["lam"]), normals=normals, shading=shading,
+            offsets, gauss_class, cls, slot, ids, q, R, t, lam=float(a["lam"]),
         )
 
 
@@ -86,9 +80,6 @@ def instanced_arrays(model) -> Dict[str, np.ndarray]:
         "pose_q": q, "pose_t": t, "lam": torch.tensor(model.config.template_mix),
         "class_names": np.array(table.classes),
     }
-    if model.shades_templates:
-        out["normals"] = model.gauss_params["template_normal"][gauss_class > 0].to(torch.float16)
-        out["shading"] = model.instance_shading
     for i in range(len(table.ids)):
         rows = gauss_class == table.class_index[i].item()
         out[f"offsets_{int(table.ids[i])}"] = offsets[rows, int(table.slot[i])].to(torch.float16)
