@@ -11,8 +11,9 @@ Test-view masks come from rendering the features in the test cameras and thresho
 click queries (τ = 0.1); they are scored against the ground-truth masks (mIoU, mAcc; see
 ``splatreplace_ns.eval.segmentation``). The training views are scored the same way at the end
 (``miou_train``): a preset whose test views look at sides no training view saw (temple) has no surface
-there to segment, and the training views show the segmentation apart from that. Leftovers = background-labelled Gaussians whose centres lie
-inside an instance's ground-truth mesh or within 1 % of its bounding-box diagonal from it.
+there to segment, and the training views show the segmentation apart from that. Leftovers =
+background-labelled Gaussians whose centres lie inside an instance's ground-truth mesh or within 1 % of
+its bounding-box diagonal from it.
 """
 
 from __future__ import annotations
