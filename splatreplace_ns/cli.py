@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Union
 
@@ -50,9 +51,24 @@ Commands = Union[
 ]
 
 
+def user_errors() -> tuple:
+    """The errors that name a bad input (a click, a dataset file, an ONNX model, a missing path): printed as
+    one line, not as a traceback."""
+    from splatreplace_ns.datamanager.dataparser import DatasetFormatError
+    from splatreplace_ns.masks.lifting import ClickError
+    from splatreplace_ns.masks.onnx_sam import OnnxModelError
+    from splatreplace_ns.segment.instances import SelectionError
+
+    return (ClickError, DatasetFormatError, OnnxModelError, SelectionError, FileNotFoundError)
+
+
 def entrypoint() -> None:
     command = tyro.cli(tyro.conf.OmitSubcommandPrefixes[Commands])
-    command.main()
+    try:
+        command.main()
+    except user_errors() as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -91,6 +91,45 @@ def test_bad_inputs_leave_transforms_untouched(base_run, tmp_path):
     assert (data / "transforms.json").read_bytes() == before
 
 
+def test_cli_prints_a_bad_click_as_one_line_and_exits_2(base_run, tmp_path, monkeypatch, capsys):
+    from splatreplace_ns.cli import entrypoint
+
+    _, capture, report = base_run
+    data = tmp_path / "cli"
+    shutil.copytree(capture, data)
+    before = (data / "transforms.json").read_bytes()
+    clicks = json.loads((data / "clicks.json").read_text())
+    path = tmp_path / "clicks.json"
+    path.write_text(json.dumps([clicks[0], dict(clicks[0], xy=[1, 1])]))
+    monkeypatch.setattr("sys.argv", ["splatreplace", "masks", str(data), "--clicks", str(path), "--load-config", str(report["config"])])
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint()
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: click 1 (images/") and "Traceback" not in err
+    assert (data / "transforms.json").read_bytes() == before
+
+
+def test_skip_bad_clicks_makes_the_other_masks_and_keeps_their_ids(base_run, tmp_path):
+    scene, capture, report = base_run
+    data = tmp_path / "skip"
+    shutil.copytree(capture, data)
+    clicks = json.loads((data / "clicks.json").read_text())
+    path = tmp_path / "clicks.json"
+    path.write_text(json.dumps([dict(clicks[0], xy=[1, 1])] + clicks[1:]))  # click 0 on the wall, no crate
+    skipped = make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
+    assert len(skipped["skipped_clicks"]) == 1 and skipped["skipped_clicks"][0].startswith("click 0 (images/")
+    meta = json.loads((data / "transforms.json").read_text())
+    assert meta["instances"] == [{"id": k, "class": "crate"} for k in (2, 3)]
+    # crates 2 and 3 get the same masks as when every click worked; id 1 is nowhere
+    for frame in meta["frames"]:
+        ours = cv2.imread(str(data / frame["instance_mask_path"]), cv2.IMREAD_UNCHANGED)
+        full = cv2.imread(str(capture / frame["instance_mask_path"]), cv2.IMREAD_UNCHANGED)
+        assert not (ours == 1).any()
+        for k in (2, 3):
+            assert ((ours == k) == (full == k)).mean() > 0.99
+
+
 def test_onnx_sam_backend_with_a_tiny_exported_pair(base_run, tmp_path):
     from test_masks_onnx import export_tiny_sam
 

@@ -178,6 +178,31 @@ def test_random_walk_split_cuts_at_the_colour_change_not_at_the_midpoint():
     assert (random_walk_split(means, colours, seeds[:1], spacing=0.1, cfg=cfg) == 0).all()
 
 
+def test_random_walk_split_leaves_the_beam_over_three_posts_to_the_background():
+    """Three posts under one beam (a colonnade), each post clicked at its middle: every post point goes to its
+    click, while most of the beam between the posts, which the three clicks reach about equally, goes to no
+    one; with ``split_min_probability`` 0 every beam point goes to some click."""
+    from splatreplace_ns.masks.clustering import SHARED, random_walk_split
+
+    rng = np.random.default_rng(0)
+    xs = (-1.0, 0.0, 1.0)
+    posts = [np.c_[rng.uniform(x - 0.1, x + 0.1, 800), rng.uniform(-0.1, 0.1, 800), rng.uniform(0, 1.0, 800)] for x in xs]
+    beam = np.c_[rng.uniform(-1.3, 1.3, 3000), rng.uniform(-0.15, 0.15, 3000), rng.uniform(1.0, 1.2, 3000)]
+    means = np.concatenate(posts + [beam])
+    colours = np.concatenate([np.tile([0.8, 0.8, 0.75], (2400, 1)), np.tile([0.75, 0.7, 0.6], (3000, 1))])
+    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    seeds = [800 * k + int(np.argmin(np.linalg.norm(p - [x, 0, 0.5], axis=1))) for k, (p, x) in enumerate(zip(posts, xs))]
+    owner = random_walk_split(means, colours, seeds, spacing=0.05, cfg=ClusteringConfig())
+    for k in range(3):
+        assert (owner[800 * k : 800 * (k + 1)] == k).all()
+    beam_owner = owner[2400:]
+    between = (np.min(np.abs(beam[:, 0, None] - np.array(xs)), axis=1) > 0.3) & (np.abs(beam[:, 0]) < 1.0)
+    assert (beam_owner[between] == SHARED).mean() > 0.6, (beam_owner[between] == SHARED).mean()
+    assert set(np.unique(beam_owner)) <= {0, 1, 2, SHARED}
+    everything = random_walk_split(means, colours, seeds, spacing=0.05, cfg=ClusteringConfig(split_min_probability=0.0))
+    assert set(np.unique(everything)) == {0, 1, 2}
+
+
 def test_normal_weight_cuts_the_split_where_the_surface_turns():
     """A horizontal plate and a vertical one of the same colour meeting at an edge (a chair's back against a
     table's top), clicked far out on the plate and near the edge on the upright: without normals the cut runs

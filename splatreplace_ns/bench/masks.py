@@ -59,6 +59,9 @@ class BenchMasksConfig:
     """Border cleanup of the geometric backend (none, grabcut, guided)."""
     clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
     """Clustering and split of the geometric backend (``splatreplace masks --clustering.*``)."""
+    skip_bad_clicks: bool = True
+    """Make the masks of the clicks that work and score each skipped click's instance as IoU 0 (the
+    command's ``--skip-bad-clicks``); off: a bad scene click stops the benchmark with its error."""
     downstream: bool = True
     """Also train splat-replace on our masks and on the ground-truth masks."""
     downstream_base_iterations: int = 1000
@@ -161,7 +164,6 @@ def with_ground_truth_masks(scene: Path, capture: Path, out: Path) -> Path:
 
 
 @torch.no_grad()
-@torch.no_grad()
 def test_view_psnr_in_gt_masks(pipeline, scene: Path) -> Optional[float]:
     """Mean test-view PSNR inside the union of the scene's *ground-truth* instance masks, so that runs trained
     on different masks are scored on the same pixels (``ns-eval``'s psnr_masked uses the dataset's own masks)."""
@@ -232,7 +234,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         command = MasksCommand(
             capture, backend=backend, load_config=base_config, base_iterations=cfg.base_iterations,
             output_dir=cfg.out_dir / f"masks_{cfg.preset}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
-            border=BorderConfig(method=cfg.border), clustering=cfg.clustering,
+            border=BorderConfig(method=cfg.border), clustering=cfg.clustering, skip_bad_clicks=cfg.skip_bad_clicks,
         )
         report = make_masks(command)
         if base_config is None:
@@ -240,7 +242,8 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         scores = score_masks(scene, capture, cfg.boundary_tolerance)
         rows.append({"backend": backend, "miou": scores["miou"], "boundary_f": scores["boundary_f"],
                      "time_s": report["time_s"]["masks"], "iou_per_instance": scores["iou"],
-                     "boundary_f_per_instance": scores["boundary_f_per_instance"]})
+                     "boundary_f_per_instance": scores["boundary_f_per_instance"],
+                     "skipped_clicks": report["skipped_clicks"]})
         first_capture = first_capture or capture
 
     downstream: Dict = {"psnr_masked_gt_masks": None, "psnr_masked_our_masks": None}
@@ -296,6 +299,9 @@ def print_table(result: Dict) -> None:
     for row in result["rows"]:
         table.add_row(row["backend"], f"{row['miou']:.4f}", f"{row['boundary_f']:.4f}", f"{row['time_s']:.1f}")
     Console().print(table)
+    for row in result["rows"]:
+        for message in row.get("skipped_clicks", []):
+            Console().print(f"{row['backend']}: skipped (scored as IoU 0): {message}")
     d = result["downstream"]
     fmt = lambda v: "null" if v is None else f"{v:.3f}"  # noqa: E731
     Console().print(

@@ -16,7 +16,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Literal, Optional
+from typing import Callable, Dict, List, Literal, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -25,7 +25,7 @@ import tyro
 from typing_extensions import Annotated
 
 from splatreplace_ns.masks.base import BaseModel, FrameCameras, frame_cameras, load_base, train_base
-from splatreplace_ns.masks.clustering import Clustering, ClusteringConfig, cluster_gaussians, instance_ids
+from splatreplace_ns.masks.clustering import Clustering, ClusteringConfig, cluster_gaussians, clusters_of_clicks, instance_ids
 from splatreplace_ns.masks.colmap_input import colmap_to_transforms
 from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, project_points, view_and_intrinsics, visible_by_depth
 from splatreplace_ns.masks.onnx_sam import OnnxSam, sam_labels
@@ -71,9 +71,15 @@ class MasksCommand:
     are written to clicks.json (an existing one is kept as clicks.json.before-viewer)."""
     viewer_port: int = 7007
     """Port of the viewer (with --viewer)."""
+    skip_bad_clicks: bool = False
+    """Report a click that cannot make an instance (on empty space, a supporting plane, loose fuzz, or an
+    object the base model holds too sparsely) and make the masks of the others, instead of stopping. Each
+    instance keeps the id of its click's position (click k → id k + 1), so a skipped click leaves a gap."""
 
     def main(self) -> Dict:
         report = make_masks(self)
+        for message in report["skipped_clicks"]:
+            print(f"skipped: {message}")
         print(
             f"wrote {report['frames']} masks for {len(report['instances'])} instances to {self.data / 'masks'} "
             f"and {self.data / 'transforms.json'} ({report['time_s']['masks']:.1f} s after the base stage; "
@@ -129,6 +135,25 @@ def lift_clicks(
             viewmat, K, _, _ = view_and_intrinsics(camera)
         lifted.append(lift_click(click.index, frame, click.xy, click.cls, source, depth.cpu(), alpha.cpu(), viewmat.cpu(), K.cpu(), min_alpha))
     return lifted
+
+
+def usable_clicks(
+    model, frames: FrameCameras, clicks: List[Click], cfg: "MasksCommand", clustering: Clustering,
+    renders: Optional[FrameRenders] = None,
+) -> Tuple[List[int], List[str]]:
+    """Positions in ``clicks`` of the clicks that make an instance on their own, and the error of each other one."""
+    means = model.means.detach().cpu().double().numpy()
+    opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
+    kept, errors = [], []
+    for position, click in enumerate(clicks):
+        try:
+            lifted = lift_clicks(model, frames, [click], cfg.min_alpha, renders)
+            clusters_of_clicks(lifted, means, opacities, clustering, cfg.clustering)
+        except ClickError as err:
+            errors.append(str(err))
+            continue
+        kept.append(position)
+    return kept, errors
 
 
 def model_clustering(model, cfg: ClusteringConfig) -> Clustering:
@@ -278,8 +303,15 @@ def make_masks(cfg: MasksCommand) -> Dict:
         viewer_start = time.perf_counter()
         clicks = clicks_from_viewer(base, frames, cfg, renders, clustering)
         t0 += time.perf_counter() - viewer_start  # the time spent clicking is not the masks' time
-    lifted = lift_clicks(model, frames, clicks, cfg.min_alpha, renders)
+    positions, skipped = list(range(len(clicks))), []
+    if cfg.skip_bad_clicks:
+        positions, skipped = usable_clicks(model, frames, clicks, cfg, clustering, renders)
+        if not positions:
+            raise ClickError("no click makes an instance:\n" + "\n".join(skipped))
+    lifted = lift_clicks(model, frames, [clicks[p] for p in positions], cfg.min_alpha, renders)
     instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
+    # instance k of the kept clicks carries its click's id (position + 1), whatever was skipped before it
+    click_id = np.array([0] + [p + 1 for p in positions], dtype=np.uint16)
     masks = []
     for index, file_path in enumerate(frames.file_paths):
         camera = frames.cameras[index : index + 1].to(model.device)
@@ -291,13 +323,14 @@ def make_masks(cfg: MasksCommand) -> Dict:
             )
         else:
             mask = sam_view_labels(model, sam, camera, image, instance_of_gaussian, lifted, cfg.border.min_weight)
-        masks.append(mask.astype(np.uint16))
-    instances = [{"id": k + 1, "class": click.cls} for k, click in enumerate(lifted)]
+        masks.append(click_id[mask.astype(np.int64)])
+    instances = [{"id": p + 1, "class": clicks[p].cls} for p in positions]
     write_dataset_masks(data, masks, instances)
     return {
         "instances": instances,
         "frames": len(masks),
-        "gaussians_per_instance": {k + 1: int((instance_of_gaussian == k + 1).sum()) for k in range(len(lifted))},
+        "gaussians_per_instance": {p + 1: int((instance_of_gaussian == k + 1).sum()) for k, p in enumerate(positions)},
+        "skipped_clicks": skipped,
         "time_s": {"base": base_s, "masks": time.perf_counter() - t0},
         "config": str(base.config_path),
         "backend": cfg.backend,
