@@ -182,6 +182,26 @@ def test_ground_truth_labels_on_trained_tiny(tiny_bench):
         assert near.mean() >= 0.9, f"crate {iid}: {100 * near.mean():.1f} % of its labels near it"
 
 
+def test_ground_truth_labels_rendered_into_views_score_high_and_swapped_ones_low(tiny_bench):
+    """The segmentation benchmark's ceiling: the voted ground-truth labels rendered back into the training views
+    match their masks; the same labels with two crates' ids swapped score at or near 0 for those crates."""
+    import torch
+
+    from splatreplace_ns.eval.segmentation import score_gaussian_labels_in_views
+
+    _, scene = tiny_bench
+    pipeline = scene.pipeline
+    views = pipeline.datamanager.train_dataset
+    truth = score_gaussian_labels_in_views(pipeline.model, scene.gt_labels, views)
+    assert truth["miou"] > 0.6 and min(truth["iou"].values()) > 0.4, truth["iou"]
+    swapped = scene.gt_labels.clone()
+    swapped[scene.gt_labels == 1], swapped[scene.gt_labels == 2] = 2, 1
+    wrong = score_gaussian_labels_in_views(pipeline.model, swapped, views)
+    assert wrong["iou"][1] < 0.2 and wrong["iou"][2] < 0.2 and abs(wrong["iou"][3] - truth["iou"][3]) < 1e-9
+    empty = score_gaussian_labels_in_views(pipeline.model, torch.zeros_like(scene.gt_labels), views)
+    assert empty["iou"] == {} and empty["miou"] == 0.0
+
+
 def test_bench_json_interface(tiny_bench):
     cfg, _ = tiny_bench
     result = cfg.main()  # reuses the trained run of the fixture

@@ -146,3 +146,31 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
     finally:
         pipeline.selection = previous_selection
         model.train(was_training)
+
+
+@torch.no_grad()
+def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset) -> Dict:
+    """Renders fixed per-Gaussian instance labels into a dataset's views and scores them against its masks.
+
+    With labels voted from the training views' ground-truth masks this is the best a hard per-Gaussian
+    selection can render on this reconstruction: where the Gaussians render a far view badly, no
+    segmentation of them does better there.
+
+    Args:
+        model: a SplatReplaceModel (``render_features``).
+        labels: [N] ground-truth instance id per Gaussian (0 = background).
+        dataset: views carrying ``instance_mask``.
+
+    Returns:
+        :func:`segmentation_scores` over the instances that the labels hold.
+    """
+    from splatreplace_ns.masks.render import labels_from_weights, one_hot_labels
+
+    ids = sorted(int(i) for i in torch.unique(labels) if int(i) > 0)
+    features = one_hot_labels(labels.long(), max(ids, default=0)).to(model.device)
+    preds, gts = [], []
+    for idx in range(len(dataset)):
+        weights, _, _ = model.render_features(dataset.cameras[idx : idx + 1].to(model.device), features)
+        preds.append(labels_from_weights(weights, 0.5).cpu())
+        gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0].long())
+    return segmentation_scores(torch.stack(preds), torch.stack(gts), {i: i for i in ids})
