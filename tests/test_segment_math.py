@@ -99,6 +99,28 @@ def test_carving_removes_only_instance_leftovers_hidden_in_every_view():
     assert carve_mask(torch.zeros(0, 3), views, torch.stack([K, K]), W, H, masks, depths).shape == (0,)
 
 
+def test_carving_mask_tolerance_takes_a_leftover_just_outside_a_thin_mask():
+    """A leftover whose centre projects one pixel beside a one-pixel-wide mask (a chair leg the threshold
+    thinned) in one view and inside it in the other: kept without tolerance, carved with one pixel; a centre
+    two pixels away stays with one pixel of tolerance."""
+    W, H = 20, 20
+    K = torch.tensor([[20.0, 0, 10], [0, 20.0, 10], [0, 0, 1]])
+    views = torch.stack([torch.eye(4), torch.eye(4)])
+    masks = torch.zeros(2, H, W, dtype=torch.bool)
+    masks[0, :, 10] = True  # column 10 only
+    masks[1, :, 11] = True
+    depths = torch.zeros(2, H, W)  # nothing rendered: every centre in front of the camera is visible
+    means = torch.tensor([
+        [0.1, 0.0, 2.0],   # u = 11: beside the mask in view 0, inside it in view 1
+        [0.2, 0.0, 2.0],   # u = 12: two pixels from view 0's mask
+    ])
+    Ks = torch.stack([K, K])
+    assert carve_mask(means, views, Ks, W, H, masks, depths).tolist() == [False, False]
+    assert carve_mask(means, views, Ks, W, H, masks, depths, mask_tolerance=1).tolist() == [True, False]
+    # no mask anywhere: a tolerance does not make one
+    assert carve_mask(means, views, Ks, W, H, torch.zeros_like(masks), depths, mask_tolerance=2).tolist() == [False, False]
+
+
 def test_segmentation_scores_hand_made_case():
     from splatreplace_ns.eval.segmentation import segmentation_scores
 

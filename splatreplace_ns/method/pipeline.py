@@ -51,6 +51,10 @@ class SegmentationConfig:
     """Remove leftover background Gaussians by space carving."""
     depth_tolerance: float = 0.02
     """Relative depth margin for the carving visibility test."""
+    carve_mask_tolerance: int = 1
+    """Carving: a centre within this many pixels of an instance's rendered mask counts as inside it (thin parts
+    such as chair legs are often missing from the thresholded masks; office leftovers after carving,
+    `splatreplace bench segment`, README)."""
     min_alpha: float = 0.5
     """Pixels with less accumulated opacity stay background in the rendered masks."""
 
@@ -259,6 +263,7 @@ class SplatReplacePipeline(VanillaPipeline):
             carve = carve_mask(
                 model.means.detach()[background], viewmats, Ks, int(cameras.width[0]), int(cameras.height[0]),
                 self.instance_masks_2d > 0, torch.stack(depths), cfg.depth_tolerance,
+                mask_tolerance=cfg.carve_mask_tolerance,
             )
             drop = torch.zeros_like(background)
             drop[background] = carve

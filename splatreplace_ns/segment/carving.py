@@ -15,6 +15,7 @@ def carve_mask(
     rendered_depths: torch.Tensor,
     depth_tolerance: float = 0.02,
     near: float = 0.01,
+    mask_tolerance: int = 0,
 ) -> torch.Tensor:
     """Which background Gaussians to remove.
 
@@ -32,10 +33,18 @@ def carve_mask(
         Ks: [V, 3, 3] intrinsics.
         instance_masks: [V, H, W] bool, union of the instance masks of each view.
         rendered_depths: [V, H, W] expected depth of the full scene in each view (0 where empty).
+        mask_tolerance: a centre within this many pixels of a mask counts as inside it (the masks are
+            thresholded renders: a chair leg one or two pixels wide is often missing from them, and a
+            leftover inside it then looks like visible background in that view).
 
     Returns:
         [N] bool, True = remove.
     """
+    if mask_tolerance > 0:
+        size = 2 * int(mask_tolerance) + 1
+        instance_masks = torch.nn.functional.max_pool2d(
+            instance_masks[:, None].float(), size, stride=1, padding=int(mask_tolerance)
+        )[:, 0] > 0
     N = means.shape[0]
     remove = torch.ones(N, dtype=torch.bool, device=means.device)
     touches_an_instance = torch.zeros(N, dtype=torch.bool, device=means.device)
