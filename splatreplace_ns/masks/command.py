@@ -72,9 +72,10 @@ class MasksCommand:
     viewer_port: int = 7007
     """Port of the viewer (with --viewer)."""
     skip_bad_clicks: bool = False
-    """Report a click that cannot make an instance (on empty space, a supporting plane, loose fuzz, or an
+    """Report a click that makes no instance on its own (on empty space, a supporting plane, loose fuzz, or an
     object the base model holds too sparsely) and make the masks of the others, instead of stopping. Each
-    instance keeps the id of its click's position (click k → id k + 1), so a skipped click leaves a gap."""
+    instance keeps the id of its click's position (click k → id k + 1), so a skipped click leaves a gap. Two
+    clicks on one instance still stop the command."""
 
     def main(self) -> Dict:
         report = make_masks(self)
