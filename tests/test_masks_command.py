@@ -128,6 +128,10 @@ def test_skip_bad_clicks_makes_the_other_masks_and_keeps_their_ids(base_run, tmp
         assert not (ours == 1).any()
         for k in (2, 3):
             assert ((ours == k) == (full == k)).mean() > 0.99
+    # a second click on one instance is not a click that makes no instance: it still stops the command
+    path.write_text(json.dumps([clicks[0], dict(clicks[0])]))
+    with pytest.raises(ClickError, match="same object"):
+        make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
 
 
 def test_onnx_sam_backend_with_a_tiny_exported_pair(base_run, tmp_path):
