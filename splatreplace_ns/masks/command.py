@@ -141,20 +141,22 @@ def lift_clicks(
 def usable_clicks(
     model, frames: FrameCameras, clicks: List[Click], cfg: "MasksCommand", clustering: Clustering,
     renders: Optional[FrameRenders] = None,
-) -> Tuple[List[int], List[str]]:
-    """Positions in ``clicks`` of the clicks that make an instance on their own, and the error of each other one."""
+) -> Tuple[List[int], List[LiftedClick], List[str]]:
+    """The clicks that make an instance on their own: their positions in ``clicks`` and their lifted points;
+    and the error of each other one."""
     means = model.means.detach().cpu().double().numpy()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    kept, errors = [], []
+    positions, lifted, errors = [], [], []
     for position, click in enumerate(clicks):
         try:
-            lifted = lift_clicks(model, frames, [click], cfg.min_alpha, renders)
-            clusters_of_clicks(lifted, means, opacities, clustering, cfg.clustering)
+            point = lift_clicks(model, frames, [click], cfg.min_alpha, renders)
+            clusters_of_clicks(point, means, opacities, clustering, cfg.clustering)
         except ClickError as err:
             errors.append(str(err))
             continue
-        kept.append(position)
-    return kept, errors
+        positions.append(position)
+        lifted.extend(point)
+    return positions, lifted, errors
 
 
 def model_clustering(model, cfg: ClusteringConfig) -> Clustering:
@@ -304,12 +306,12 @@ def make_masks(cfg: MasksCommand) -> Dict:
         viewer_start = time.perf_counter()
         clicks = clicks_from_viewer(base, frames, cfg, renders, clustering)
         t0 += time.perf_counter() - viewer_start  # the time spent clicking is not the masks' time
-    positions, skipped = list(range(len(clicks))), []
     if cfg.skip_bad_clicks:
-        positions, skipped = usable_clicks(model, frames, clicks, cfg, clustering, renders)
+        positions, lifted, skipped = usable_clicks(model, frames, clicks, cfg, clustering, renders)
         if not positions:
             raise ClickError("no click makes an instance:\n" + "\n".join(skipped))
-    lifted = lift_clicks(model, frames, [clicks[p] for p in positions], cfg.min_alpha, renders)
+    else:
+        positions, lifted, skipped = list(range(len(clicks))), lift_clicks(model, frames, clicks, cfg.min_alpha, renders), []
     instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
     # instance k of the kept clicks carries its click's id (position + 1), whatever was skipped before it
     click_id = np.array([0] + [p + 1 for p in positions], dtype=np.uint16)
