@@ -164,13 +164,14 @@ def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset) -> Dict
     Returns:
         :func:`segmentation_scores` over the instances that the labels hold.
     """
-    from splatreplace_ns.masks.render import labels_from_weights, one_hot_labels
+    from splatreplace_ns.masks.render import BorderConfig, render_instance_masks
 
     ids = sorted(int(i) for i in torch.unique(labels) if int(i) > 0)
-    features = one_hot_labels(labels.long(), max(ids, default=0)).to(model.device)
     preds, gts = [], []
     for idx in range(len(dataset)):
-        weights, _, _ = model.render_features(dataset.cameras[idx : idx + 1].to(model.device), features)
-        preds.append(labels_from_weights(weights, 0.5).cpu())
+        camera = dataset.cameras[idx : idx + 1].to(model.device)
+        # the masks command's own render of labelled Gaussians, borders as rendered
+        mask = render_instance_masks(model, camera, labels.long(), max(ids, default=0), None, BorderConfig(method="none"))
+        preds.append(torch.from_numpy(mask.astype("int64")))
         gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0].long())
     return segmentation_scores(torch.stack(preds), torch.stack(gts), {i: i for i in ids})
