@@ -274,9 +274,10 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
 def test_row_settings_differ_only_where_the_row_says():
     from splatreplace_ns.bench.register import BenchRegisterConfig, row_configs
 
-    rows = dict(row_configs(BenchRegisterConfig(), ("ours", "no_multistart", "no_icp", "fpfh")))
+    rows = dict(row_configs(BenchRegisterConfig(), ("ours", "no_upright", "no_multistart", "no_icp", "fpfh")))
     ours = rows["ours"]
-    assert ours.multistart_turns > 0 and ours.icp and ours.method == "ours"
+    assert ours.multistart_turns > 0 and ours.icp and ours.method == "ours" and ours.upright
+    assert rows["no_upright"] == replace(ours, upright=False)
     assert rows["no_multistart"] == replace(ours, multistart_turns=0)
     assert rows["no_icp"] == replace(ours, icp=False)
     assert rows["fpfh"] == replace(ours, method="fpfh")

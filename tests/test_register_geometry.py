@@ -328,3 +328,104 @@ def test_backproject_rendered_depth_lies_on_surface():
         assert valid.all()
         assert np.abs(pts[:, 2]).max() < tol, elevation
         assert np.abs(pts[:, :2]).max() < 0.6 + 3 * 0.03
+
+
+# ---------------------------------------------------------------- upright ICP and the floor's up axis
+
+TILTED_UP = np.array([0.02, -0.13, 0.99]) / np.linalg.norm([0.02, -0.13, 0.99])
+
+
+def test_upright_icp_recovers_a_turn_about_a_tilted_up_axis():
+    from splatreplace_ns.register.icp import refine_icp_upright
+
+    mesh = class_mesh("chair")
+    target = sample_mesh(mesh, 4000, seed=4)[0]
+    source_obj = sample_mesh(mesh, 4000, seed=5)[0]
+    T_src = rigid(rot(TILTED_UP, 25.0), [0.04, -0.03, 0.01])  # a copy turned on the same (tilted) floor
+    source = apply(T_src, source_obj)
+    diag = float(np.linalg.norm(target.max(0) - target.min(0)))
+    # start near the truth but with a 3° tilt and 4° of turn off, as a PnP pose would be
+    init = rigid(rot([1.0, 0.3, 0.0], 3.0) @ rot(TILTED_UP, 4.0), [0.0, 0.0, 0.0]) @ inv(T_src)
+    T, fitness = refine_icp_upright(source, target, init, TILTED_UP, max_distance=0.1 * diag)
+    assert np.isfinite(T).all()
+    assert np.allclose(T[:3, :3] @ TILTED_UP, TILTED_UP, atol=1e-9)  # a pure turn about up: no tilt left
+    assert rotation_error_deg(inv(T), T_src, "none") < 0.2
+    assert translation_error_rel(inv(T), T_src, diag) < 0.01
+    assert fitness > 0.9
+
+
+def test_upright_icp_hard_cases_stay_finite():
+    from splatreplace_ns.register.icp import nearest_upright, refine_icp_upright
+
+    mesh = class_mesh("pawn")  # symmetric about up: the turn is free, the fit must still converge
+    target = sample_mesh(mesh, 2000, seed=6)[0]
+    source = apply(rigid(rot([0, 0, 1], 40.0), [0.01, 0.0, 0.0]), sample_mesh(mesh, 2000, seed=7)[0])
+    T, fitness = refine_icp_upright(source, target, np.eye(4), [0, 0, 1], max_distance=0.05)
+    assert np.isfinite(T).all() and fitness > 0.9
+    assert rotation_error_deg(inv(T), rigid(rot([0, 0, 1], 40.0), [0.01, 0, 0]), "rot_z:inf") < 0.5
+    # empty or tiny inputs: the (uprighted) start comes back with zero fitness, nothing raises
+    for src, tgt in [(np.zeros((0, 3)), target), (source[:3], target), (source, target[:2])]:
+        T, fitness = refine_icp_upright(src, tgt, np.eye(4), [0, 0, 1], max_distance=0.05)
+        assert np.isfinite(T).all() and fitness == 0.0
+    # far apart (no correspondence within the cut-off): no step, zero fitness
+    T, fitness = refine_icp_upright(source + 10.0, target, np.eye(4), [0, 0, 1], max_distance=0.05)
+    assert np.isfinite(T).all() and fitness == 0.0
+    # nearest_upright keeps the heading and the centroid's image, drops the tilt
+    pts = sample_mesh(class_mesh("chair"), 500, seed=1)[0]
+    T = rigid(rot(TILTED_UP, 70.0) @ rot([0.0, 1.0, 0.0], 5.0), [0.3, 0.1, -0.2])
+    U = nearest_upright(T, pts, TILTED_UP)
+    assert np.allclose(U[:3, :3] @ TILTED_UP, TILTED_UP, atol=1e-9)
+    assert rotation_error_deg(U, T, "none") < 5.5
+    assert np.allclose(apply(U, pts.mean(0)[None]), apply(T, pts.mean(0)[None]), atol=1e-9)
+
+
+def _plane_points(normal, n, extent, rng, offset=0.0):
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    uv = rng.uniform(-extent, extent, (n, 2))
+    return uv[:, :1] * a + uv[:, 1:] * b + (offset + rng.normal(0.0, 0.002, (n, 1))) * normal
+
+
+def test_floor_up_axis_finds_the_floor_not_the_wall():
+    from splatreplace_ns.register.up_axis import floor_up_axis
+
+    rng = np.random.default_rng(0)
+    floor = _plane_points(TILTED_UP, 3000, 2.0, rng)
+    wall = _plane_points(np.cross(TILTED_UP, [1.0, 0.0, 0.0]), 6000, 2.0, rng, offset=1.5)  # larger, vertical
+    clutter = rng.uniform(-2.0, 2.0, (1500, 3))
+    est = floor_up_axis(np.concatenate([wall, clutter, floor]))
+    assert est.found and est.inliers >= 2500
+    assert np.degrees(np.arccos(min(1.0, est.up @ TILTED_UP))) < 0.5
+    assert est.tilt_deg == pytest.approx(np.degrees(np.arccos(TILTED_UP[2])), abs=0.5)
+    # the normal is turned to the prior's side even when the prior points down
+    down = floor_up_axis(floor, prior=(0.0, 0.0, -1.0))
+    assert down.found and down.up @ np.array([0.0, 0.0, -1.0]) > 0.9
+
+
+def test_floor_up_axis_falls_back_to_the_prior():
+    from splatreplace_ns.register.pipeline import RegistrationConfig, with_floor_up_axis
+    from splatreplace_ns.register.up_axis import floor_up_axis
+
+    rng = np.random.default_rng(1)
+    ball = rng.normal(0.0, 1.0, (3000, 3))  # no plane at all
+    for pts in (ball, np.zeros((0, 3)), np.full((10, 3), np.nan)):
+        est = floor_up_axis(pts, prior=(0.0, 0.0, 2.0))
+        assert not est.found and np.allclose(est.up, [0.0, 0.0, 1.0]) and est.message
+    wall_only = _plane_points([1.0, 0.0, 0.0], 3000, 2.0, rng)
+    assert not floor_up_axis(wall_only).found
+    # the registration settings take the floor's normal only when asked to (upright), and only the floor
+    # near the instances counts
+    floor = _plane_points(TILTED_UP, 3000, 2.0, rng)
+    far_slope = _plane_points([0.3, 0.0, 1.0], 9000, 2.0, rng) + [20.0, 0.0, 0.0]  # bent far floor, bigger
+    chairs = rng.uniform([-1.0, -1.0, 0.05], [1.0, 1.0, 1.0], (500, 3))
+    cfg, message = with_floor_up_axis(RegistrationConfig(), torch.from_numpy(np.concatenate([floor, far_slope])),
+                                      torch.from_numpy(chairs))
+    assert np.allclose(cfg.up_axis, TILTED_UP, atol=0.01) and "floor normal" in message
+    off = RegistrationConfig(upright=False)
+    assert with_floor_up_axis(off, floor) == (off, "")
+    # no floor near the instances (copies on a façade): full rigid ICP rather than turns about the cameras' up
+    facade = _plane_points([0.0, 1.0, 0.0], 3000, 2.0, rng, offset=1.05)
+    cfg, message = with_floor_up_axis(RegistrationConfig(), np.concatenate([facade, far_slope]), chairs)
+    assert not cfg.upright and cfg.up_axis == RegistrationConfig().up_axis and "full rigid ICP" in message

@@ -7,7 +7,9 @@ rendered depth; :func:`splatreplace_ns.segment.gt_labels.labels_from_masks`), so
 alone. Every instance is then registered onto its class template with
 :func:`splatreplace_ns.register.register_instances`, once per row:
 
-* ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, ICP);
+* ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, multi-start,
+  ICP restricted to turns about the floor's normal);
+* ``no_upright``: full rigid ICP (the paper's) instead;
 * ``no_virtual_views``: the training cameras instead of the virtual sphere;
 * ``no_icp``: without the ICP refinement;
 * ``matcher:NAME``: each matcher of ``splatreplace_ns.register.matching.MATCHERS`` as the robust matcher
@@ -43,11 +45,13 @@ import numpy as np
 import torch
 
 from splatreplace_ns.register.errors import rotation_error_deg, translation_error_rel
-from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, register_instances
+from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, register_instances, with_floor_up_axis
 from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
-DEFAULT_ROWS: Tuple[str, ...] = ("ours", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp")
+DEFAULT_ROWS: Tuple[str, ...] = (
+    "ours", "no_upright", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp"
+)
 
 
 @dataclass
@@ -67,7 +71,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, no_upright, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """Settings of "ours"; each row changes only what it ablates. Its onnx_model (``--onnx-model`` under
@@ -390,6 +394,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
     for row in rows:
         if row == "ours":
             out.append(("ours", replace(base, method="ours")))
+        elif row == "no_upright":  # full rigid ICP (the paper's) instead of turns about the floor's normal
+            out.append((row, replace(base, method="ours", upright=False)))
         elif row == "no_multistart":  # the paper's candidates: PnP poses of the top-k view pairs only
             out.append((row, replace(base, method="ours", multistart_turns=0)))
         elif row == "no_virtual_views":
@@ -411,10 +417,29 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, no_upright, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp"
             )
     return out
+
+
+def with_floor_up_axes(
+    rows: List[Tuple[str, RegistrationConfig]], means: torch.Tensor, labels: torch.Tensor
+) -> List[Tuple[str, RegistrationConfig]]:
+    """Every upright row gets the floor's normal as its up axis, as the training pipeline would find it;
+    found once, so that rows differ only in what they ablate (open3d's RANSAC is not bit-reproducible).
+
+    Args:
+        rows: (name, settings) pairs; means: (N, 3) Gaussian centres; labels: (N,) instance ids, 0 = none.
+    """
+    upright = [reg for _, reg in rows if reg.upright]
+    if not upright:
+        return rows
+    labels = labels.to(means.device)
+    floor, message = with_floor_up_axis(upright[0], means[labels == 0], means[labels > 0])
+    print(message)
+    return [(name, replace(reg, up_axis=floor.up_axis, upright=floor.upright) if reg.upright else reg)
+            for name, reg in rows]
 
 
 def _matcher_used(name: str, reg: RegistrationConfig) -> str:
@@ -556,6 +581,7 @@ def run_segmentation_rows(cfg: BenchRegisterConfig, rows: List[Tuple[str, Regist
     classes = {int(inst["id"]): str(inst["class"]) for inst in model.instances}
     gt_of = {iid: matched.get(iid, (None, 0.0))[0] for iid in classes}
     instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline))
+    rows = with_floor_up_axes(rows, model.means.detach(), seg_labels)
     result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation")
     hit = {g for g in gt_of.values() if g is not None}
     return {
@@ -574,8 +600,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     load_avg = os.getloadavg() if hasattr(os, "getloadavg") else None
     scene = scene or load_bench_scene(cfg)
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
-    rows = row_configs(cfg, tuple(cfg.rows))
     pipeline = scene.pipeline
+    rows = with_floor_up_axes(row_configs(cfg, tuple(cfg.rows)), pipeline.model.means.detach(), scene.gt_labels)
     ids = sorted(scene.ground_truth)
     instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline))
     classes = {i: scene.ground_truth[i].cls for i in ids}
@@ -592,6 +618,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         },
         "gaussians_total": int(pipeline.model.num_points),
         "gaussians_labelled": int((scene.gt_labels > 0).sum()),
+        # the up axis the upright rows used (the floor's normal), None when no row is upright
+        "floor_up_axis": next((list(reg.up_axis) for _, reg in rows if reg.upright), None),
     }
     if cfg.seg_run is not None:
         seg = run_segmentation_rows(cfg, row_configs(cfg, tuple(cfg.seg_rows or cfg.rows)))

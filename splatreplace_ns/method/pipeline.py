@@ -28,7 +28,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
-from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig
+from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.segment.clicks import Click, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
@@ -318,7 +318,12 @@ class SplatReplacePipeline(VanillaPipeline):
         instances = self.instance_gaussians()
         classes = {int(i["id"]): i["class"] for i in model.instances}
         CONSOLE.log(f"[bold]registration: {len(instances)} instances in {len(set(classes.values()))} classes")
-        results = self.datamanager.register_instances(instances, classes, self.config.registration)
+        labels = model.instance_labels.to(model.means.device)
+        config, up_message = with_floor_up_axis(self.config.registration, model.means.detach()[labels == 0],
+                                                model.means.detach()[labels > 0])
+        if up_message:
+            CONSOLE.log(up_message)
+        results = self.datamanager.register_instances(instances, classes, config)
         model.registration = {
             iid: {
                 "template": int(r.template_id), "transform": np.asarray(r.transform).tolist(), "success": bool(r.success),
@@ -329,7 +334,8 @@ class SplatReplacePipeline(VanillaPipeline):
         for iid, r in results.items():
             colour = "" if r.success else "[bold yellow]"
             CONSOLE.log(f"{colour}{r.message} ({r.time_s:.1f} s)")
-        self.registration_report = {"time_s": time.perf_counter() - start, "failures": [i for i, r in results.items() if not r.success]}
+        self.registration_report = {"time_s": time.perf_counter() - start, "failures": [i for i, r in results.items() if not r.success],
+                                    "up_axis": [float(v) for v in config.up_axis]}
         return model.registration
 
     @torch.no_grad()

@@ -114,3 +114,99 @@ def fpfh_ransac(
         if out.fitness > best_fitness:
             best_T, best_fitness = np.asarray(out.transformation).copy(), float(out.fitness)
     return best_T, max(best_fitness, 0.0)
+
+
+def turn_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` (radians) about ``axis`` (3,)."""
+    from scipy.spatial.transform import Rotation
+
+    u = np.asarray(axis, dtype=np.float64)
+    return Rotation.from_rotvec(angle * u / np.linalg.norm(u)).as_matrix()
+
+
+def nearest_upright(T: np.ndarray, source_points: np.ndarray, up) -> np.ndarray:
+    """The turn about ``up`` nearest to T's rotation (T's heading of a horizontal direction), with the
+    translation that keeps where T puts the source centroid.
+
+    Args:
+        T: (4, 4) rigid transform; source_points: (N, 3); up: (3,) axis.
+    Returns:
+        (4, 4) transform whose rotation is a pure turn about ``up``.
+    """
+    u = np.asarray(up, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    e = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e /= np.linalg.norm(e)
+    f = np.cross(u, e)
+    heading = np.asarray(T, dtype=np.float64)[:3, :3] @ e
+    R = turn_about(u, float(np.arctan2(heading @ f, heading @ e)))
+    c = np.asarray(source_points, dtype=np.float64).reshape(-1, 3).mean(axis=0)
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = T[:3, :3] @ c + T[:3, 3] - R @ c
+    return out
+
+
+def refine_icp_upright(
+    source_points: np.ndarray,
+    target_points: np.ndarray,
+    init: np.ndarray,
+    up,
+    max_distance: float = 0.05,
+    max_iterations: int = 60,
+    normal_neighbours: int = 30,
+) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP restricted to a turn about ``up`` and a translation (4 degrees of freedom).
+
+    For copies that stand on one floor: their relative pose has no tilt, and leaving the tilt free lets ICP
+    trade a small tilt for a better fit of a partly reconstructed copy. open3d's ICP has no constrained
+    estimator, so each step solves the 4-parameter linearised point-to-plane problem here (target normals
+    from open3d, nearest neighbours from scipy). ``init``'s rotation is first replaced by its nearest upright one
+    (:func:`nearest_upright`).
+
+    Args:
+        source_points: (N, 3); target_points: (M, 3); init: (4, 4); up: (3,) axis.
+        max_distance: correspondence distance cut-off.
+        max_iterations: iteration cap (stops earlier once a step turns less than 1e-6 rad and moves less
+            than 1e-6 of ``max_distance``).
+        normal_neighbours: k for the target normals (open3d).
+    Returns:
+        T (4, 4) with target ≈ T · source and a pure turn about ``up`` as rotation; fitness (fraction of
+        source points with a correspondence within ``max_distance``).
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    src = src[np.isfinite(src).all(axis=1)]
+    tgt_cloud = _cloud(target_points)
+    u = np.asarray(up, dtype=np.float64)
+    u = u / np.linalg.norm(u)
+    T = nearest_upright(np.asarray(init, dtype=np.float64), src, u) if len(src) else np.asarray(init, float).copy()
+    if len(src) < 4 or len(tgt_cloud.points) < 3:
+        return T, 0.0
+    tgt_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=normal_neighbours))
+    tgt, normals = np.asarray(tgt_cloud.points), np.asarray(tgt_cloud.normals)
+    tree = cKDTree(tgt)
+    fitness = 0.0
+    for _ in range(int(max_iterations)):
+        moved = src @ T[:3, :3].T + T[:3, 3]
+        dist, idx = tree.query(moved, k=1, distance_upper_bound=max_distance)
+        hit = np.isfinite(dist)
+        fitness = float(hit.mean())
+        if hit.sum() < 4:
+            break
+        p, q, n = moved[hit], tgt[idx[hit]], normals[idx[hit]]
+        c = p.mean(axis=0)  # turn about the matched centroid: keeps turn and translation decoupled
+        residual = np.einsum("ni,ni->n", n, p - q)
+        # linearised p' = c + R(δ)(p − c) + t: d/dδ = n · (u × (p − c)), d/dt = n
+        J = np.concatenate([np.einsum("ni,ni->n", n, np.cross(u, p - c))[:, None], n], axis=1)
+        step = np.linalg.lstsq(J, -residual, rcond=None)[0]
+        R = turn_about(u, float(step[0]))
+        dT = np.eye(4)
+        dT[:3, :3] = R
+        dT[:3, 3] = c - R @ c + step[1:]
+        T = dT @ T
+        if abs(step[0]) < 1e-6 and np.linalg.norm(step[1:]) < 1e-6 * max_distance:
+            break
+    return T, fitness

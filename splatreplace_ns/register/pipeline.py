@@ -32,10 +32,11 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 
-from splatreplace_ns.register.icp import fpfh_ransac, refine_icp
+from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
 from splatreplace_ns.register.lifting import backproject
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
+from splatreplace_ns.register.up_axis import floor_up_axis
 from splatreplace_ns.register.virtual_cameras import fit_sphere, framing_distance, sphere_cameras
 
 METHODS = ("ours", "no_virtual_views", "fpfh")
@@ -95,7 +96,16 @@ class RegistrationConfig:
         multistart_turns: with select="photometric", ICP also starts from this many turns about ``up_axis``
             (centroids aligned) and those alignments compete with the PnP ones on the same colour score.
             The worst-seen copies are the ones whose few matches pose no view pair or a wrong one; 0: off.
-        up_axis: the scene's up direction in the model's frame (+z after nerfstudio's "up" orientation).
+        up_axis: the scene's up direction in the model's frame (+z after nerfstudio's "up" orientation, which
+            is the cameras' mean up: 7.6° off the floor on the office preset); with ``upright``, callers that
+            have the background Gaussians replace it by the floor's normal (:func:`with_floor_up_axis`).
+        upright: the chosen pose (after ICP) is refined once more as a turn about the floor's normal plus a
+            translation (copies standing on one floor have no tilt between them; free ICP trades a little tilt
+            for a better fit of a partly reconstructed copy). It needs the floor's normal to a fraction of a
+            degree: where no floor is found near the instances it is skipped (and the log says so). Candidate
+            selection is unchanged. False: full rigid ICP only, as in the paper (bench register, row
+            ``no_upright``).
+        upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished.
         seed: RANSAC seed.
     """
 
@@ -129,6 +139,8 @@ class RegistrationConfig:
     min_fitness: float = 0.2
     multistart_turns: int = 12
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    upright: bool = True
+    upright_max_tilt_deg: float = 5.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -401,6 +413,23 @@ def _refine(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, radius: float, c
     return T, fit
 
 
+def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig):
+    """The chosen pose refined once more as a turn about ``cfg.up_axis`` plus a translation (finest ICP
+    distance), when ``cfg.upright`` and its tilt is at most ``cfg.upright_max_tilt_deg`` (a pose tilted
+    further is not a copy on the same floor; it is left alone). → T, polished?"""
+    if not (cfg.upright and cfg.icp):
+        return T, False
+    up = np.asarray(cfg.up_axis, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    tilt = float(np.degrees(np.arccos(np.clip((T[:3, :3] @ up) @ up, -1.0, 1.0))))
+    if tilt > cfg.upright_max_tilt_deg:
+        return T, False
+    polished, _ = refine_icp_upright(src, tgt, T, up, max_distance=cfg.icp_max_distance_rel * radius)
+    if not np.isfinite(polished).all():
+        return T, False
+    return polished, True
+
+
 _SH_C0 = 0.28209479177387814
 
 
@@ -578,12 +607,15 @@ def register_instance(
             if best is None or key > best[0]:
                 best = (key, n_inl, i, j, coarse, T, fit)
         (score, _), n_inl, i, j, coarse, T, fit = best
+    T, polished = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    if polished:
+        fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
     if i < 0:
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
         msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
-    msg += (", ICP" if cfg.icp else "") + f", fitness {fit:.3f}"
+    msg += (", ICP" if cfg.icp else "") + (" (upright)" if polished else "") + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
     if not ok:
@@ -592,6 +624,37 @@ def register_instance(
                f"min {cfg.min_photometric_fitness})")
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
                               time.perf_counter() - t0, (i, j), coarse)
+
+
+def with_floor_up_axis(
+    cfg: RegistrationConfig, background_points, instance_points=None, margin: float = 0.1
+) -> tuple[RegistrationConfig, str]:
+    """``cfg`` with ``up_axis`` set to the floor's normal where ``cfg.upright``; with ``upright`` turned off
+    when no floor is found (a turn about the cameras' mean up would carry its tilt into every pose).
+
+    Only the background near the instances is searched for the floor (their bounding box grown by
+    ``margin`` of its size on every side): far floor is reconstructed from grazing views and bends.
+
+    Args:
+        cfg: registration settings; its ``up_axis`` is the prior.
+        background_points: (N, 3) centres of the Gaussians in no instance (tensor or array).
+        instance_points: (M, 3) centres of the instances' Gaussians, or None to search all the background.
+        margin: growth of the instances' bounding box, as a fraction of its size.
+    Returns:
+        (settings, a line for the log; empty when ``upright`` was off).
+    """
+    if not cfg.upright:
+        return cfg, ""
+    points = _np(background_points).reshape(-1, 3)
+    if instance_points is not None and len(instance_points):
+        inst = _np(instance_points).reshape(-1, 3)
+        lo, hi = inst.min(axis=0), inst.max(axis=0)
+        grow = margin * (hi - lo)
+        points = points[np.all((points > lo - grow) & (points < hi + grow), axis=1)]
+    estimate = floor_up_axis(points, prior=cfg.up_axis, seed=cfg.seed)
+    if not estimate.found:
+        return replace(cfg, upright=False), estimate.message + "; full rigid ICP only (no upright refinement)"
+    return replace(cfg, up_axis=tuple(float(v) for v in estimate.up)), estimate.message
 
 
 def register_instances(
