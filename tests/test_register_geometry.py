@@ -397,6 +397,10 @@ def test_floor_up_axis_finds_the_floor_not_the_wall():
     clutter = rng.uniform(-2.0, 2.0, (1500, 3))
     est = floor_up_axis(np.concatenate([wall, clutter, floor]))
     assert est.found and est.inliers >= 2500
+    est.up[:] = 0.0  # the caller's copy: the same points give the same floor again
+    again = floor_up_axis(np.concatenate([wall, clutter, floor]))
+    assert np.array_equal(again.up, floor_up_axis(np.concatenate([wall, clutter, floor])).up)
+    est = again
     assert np.degrees(np.arccos(min(1.0, est.up @ TILTED_UP))) < 0.5
     assert est.tilt_deg == pytest.approx(np.degrees(np.arccos(TILTED_UP[2])), abs=0.5)
     # the normal is turned to the prior's side even when the prior points down

@@ -7,7 +7,9 @@ floor normal (7.6° on the office preset); turns about that axis then carry a ti
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -29,6 +31,12 @@ class UpAxisEstimate:
     inliers: int
     tilt_deg: float
     message: str
+
+
+# open3d's RANSAC is not bit-reproducible: the same points get the same answer within a process (bench rows
+# registering one model twice must differ only in what they ablate)
+_ESTIMATES: OrderedDict = OrderedDict()
+_CACHE_SIZE = 8
 
 
 def floor_up_axis(
@@ -61,12 +69,24 @@ def floor_up_axis(
         :class:`UpAxisEstimate`; ``up`` is oriented to the prior's side and is the prior itself when
         nothing qualifies (too few points, no near-horizontal plane).
     """
-    import open3d as o3d
-
     prior = np.asarray(prior, dtype=np.float64)
     prior = prior / np.linalg.norm(prior)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
+    key = hashlib.sha1(pts.tobytes() + np.array([*prior, max_tilt_deg, distance_rel, min_inlier_fraction,
+                                                  max_planes, seed]).tobytes()).digest()
+    if key not in _ESTIMATES:
+        _ESTIMATES[key] = _estimate(pts, prior, max_tilt_deg, distance_rel, min_inlier_fraction, max_planes, seed)
+        while len(_ESTIMATES) > _CACHE_SIZE:
+            _ESTIMATES.popitem(last=False)
+    found = _ESTIMATES[key]
+    return replace(found, up=found.up.copy())
+
+
+def _estimate(pts, prior, max_tilt_deg, distance_rel, min_inlier_fraction, max_planes, seed) -> UpAxisEstimate:
+    """:func:`floor_up_axis` on finite (N, 3) points and a unit prior."""
+    import open3d as o3d
+
     fallback = UpAxisEstimate(prior, False, 0, 0.0, "")
     min_inliers = max(3, int(min_inlier_fraction * len(pts)))
     if len(pts) < max(3, min_inliers):
@@ -97,12 +117,18 @@ def floor_up_axis(
         fallback.message = f"up axis: no dense plane within {max_tilt_deg:.0f}° of {_fmt(prior)} (≥ {min_inliers} points); using it"
         return fallback
     n_in, up, offset = best
-    for band in (1.0, 0.5, 0.25):  # least squares on ever tighter bands: a RANSAC normal rests on 3 points
-        on_plane = pts[np.abs(pts @ up + offset) < band * threshold]
-        if len(on_plane) < 3:
+    # least squares on ever tighter bands (a RANSAC normal rests on 3 points), the last band until its point
+    # set stops changing: runs of open3d's RANSAC (not bit-reproducible) then end on the same plane
+    selected = None
+    for band in (1.0, 0.5) + (0.25,) * 20:
+        inside = np.abs(pts @ up + offset) < band * threshold
+        if inside.sum() < 3:
             break
-        centre = on_plane.mean(axis=0)
-        up = np.linalg.svd(on_plane - centre, full_matrices=False)[2][-1]
+        if band == 0.25 and selected is not None and np.array_equal(inside, selected):
+            break
+        selected = inside
+        centre = pts[inside].mean(axis=0)
+        up = np.linalg.svd(pts[inside] - centre, full_matrices=False)[2][-1]
         up = up if up @ prior >= 0 else -up
         offset = -float(up @ centre)
     tilt = float(np.degrees(np.arccos(np.clip(up @ prior, -1.0, 1.0))))
