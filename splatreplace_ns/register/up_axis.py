@@ -89,7 +89,7 @@ def _estimate(pts, prior, max_tilt_deg, distance_rel, min_inlier_fraction, max_p
 
     fallback = UpAxisEstimate(prior, False, 0, 0.0, "")
     min_inliers = max(3, int(min_inlier_fraction * len(pts)))
-    if len(pts) < max(3, min_inliers):
+    if len(pts) < min_inliers:
         fallback.message = f"up axis: {len(pts)} background points, too few for a floor; using {_fmt(prior)}"
         return fallback
     diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
