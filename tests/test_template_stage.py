@@ -13,7 +13,7 @@ import torch
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.train import make_trainer_config, run_training
-from splatreplace_ns.register.pipeline import RegistrationResult, choose_templates
+from splatreplace_ns.bench import oracle
 from splatreplace_ns.sim import make_scene
 
 FINETUNE = 120
@@ -21,17 +21,7 @@ FINETUNE = 120
 
 def ground_truth_registration(self, instances, classes, config):
     """Stands in for the registration hook: T = P_template · P_instance⁻¹ from the parsed GT poses."""
-    poses = {int(i["id"]): i["transform_matrix"].double().numpy() for i in self.train_dataparser_outputs.metadata["instances"]}
-    by_class = {}
-    for iid in instances:
-        by_class.setdefault(classes[iid], []).append(iid)
-    templates = choose_templates(by_class, {i: g.num_gaussians for i, g in instances.items()})
-    out = {}
-    for iid in instances:
-        tid = templates[classes[iid]]
-        T = poses[tid] @ np.linalg.inv(poses[iid])  # similarity parts cancel: rigid
-        out[iid] = RegistrationResult(iid, tid, T, True, 0, 1.0, f"instance {iid}: ground truth")
-    return out
+    return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,10 @@ On one synthetic preset, with the same total number of iterations for both:
 * ``baseline`` — 3DGS* only (``base + contrastive + finetune`` base iterations);
 * ablations, each resumed from ours' checkpoint at the end of segmentation (so they share base, features and
   segmentation and differ only after it): ``shared_only`` (λ = 1, no offsets), ``offsets_only`` (λ = 0, no
-  shared colour), ``no_pose_refinement`` (instance poses frozen at the registration result).
+  shared colour), ``no_pose_refinement`` (instance poses frozen at the registration result); and on request
+  the oracles ``gt_poses`` (registration replaced by the scene's ground-truth poses) and ``gt_instances``
+  (segmentation too: the Gaussians labelled from the ground-truth masks), which show how much of the gap
+  to the best-seen copy the earlier stages leave.
 
 Test-view PSNR/SSIM on full images and on the masked repeated regions (union of the ground-truth instance
 masks), wall time of every run, and the export sizes of ours.
@@ -27,6 +30,8 @@ from splatreplace_ns.bench.output import write_result_json
 from splatreplace_ns.bench.scenes import cached_scene
 
 ABLATIONS = ("shared_only", "offsets_only", "no_pose_refinement")
+# oracles (asked for by name, not run by default): the stages before the template made exact
+ORACLE_ABLATIONS = ("gt_poses", "gt_instances")
 METRICS = ("psnr", "psnr_masked", "ssim", "ssim_masked")
 
 
@@ -51,7 +56,9 @@ class BenchTemplateConfig:
     finetune_iterations: int = 2000
     """Shared-template fine-tuning iterations."""
     ablations: Tuple[str, ...] = ABLATIONS
-    """Ablations to run (each costs one fine-tuning run): shared_only, offsets_only, no_pose_refinement."""
+    """Ablations to run (each costs one fine-tuning run): shared_only, offsets_only, no_pose_refinement; the
+    oracles gt_poses (ground-truth registration) and gt_instances (ground-truth segmentation and registration)
+    run only when named."""
     data_root: Path = Path("benchmarks/data")
     """Generated scenes are kept here and reused."""
     out_dir: Path = Path("benchmarks/runs")
@@ -77,11 +84,11 @@ def test_metrics(pipeline) -> Dict[str, float]:
     return out
 
 
-def _run(config) -> Tuple[object, float]:
+def _run(config, before_train=None) -> Tuple[object, float]:
     from splatreplace_ns.method.train import run_training
 
     start = time.perf_counter()
-    trainer = run_training(config)
+    trainer = run_training(config, before_train=before_train)
     return trainer, time.perf_counter() - start
 
 
@@ -192,12 +199,40 @@ def train_ours_and_baseline(
             "parallel": parallel}
 
 
-def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
+def run_ablation(name: str, data: Path, out: Path, B: int, C: int, F: int, checkpoint_dir: Path) -> Dict:
+    """One ablation, resumed from ours' checkpoint at the end of segmentation (step B + C − 1) and fine-tuned
+    to the same total. → test metrics and ``time_s``."""
     from splatreplace_ns.method.train import make_trainer_config
 
-    unknown = sorted(set(cfg.ablations) - set(ABLATIONS))
+    ab_cfg = make_trainer_config(data, out, B, C, F, experiment_name=f"ablation_{name}", progress=True,
+                                 resume_from=(checkpoint_dir, B + C - 1))
+    before = None
+    if name == "shared_only":
+        ab_cfg.pipeline.model.template_mix = 1.0
+    elif name == "offsets_only":
+        ab_cfg.pipeline.model.template_mix = 0.0
+    elif name == "no_pose_refinement":
+        ab_cfg.optimizers["instance_poses"]["optimizer"].lr = 0.0
+    elif name in ORACLE_ABLATIONS:
+        from splatreplace_ns.bench.oracle import use_ground_truth
+
+        def before(trainer):
+            use_ground_truth(trainer.pipeline, instances_too=name == "gt_instances")
+
+    elif name != "ours":  # "ours": the full method resumed, the reference the ablations differ from
+        raise ValueError(f"unknown ablation {name!r}; known: {', '.join(ABLATIONS + ORACLE_ABLATIONS)}")
+    trainer, seconds = _run(ab_cfg, before)
+    result = {**test_metrics(trainer.pipeline), "time_s": seconds}
+    registration = trainer.pipeline.model.registration
+    result["replaced"] = sorted(int(k) for k, v in registration.items() if v["success"])
+    del trainer
+    return result
+
+
+def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
+    unknown = sorted(set(cfg.ablations) - set(ABLATIONS) - set(ORACLE_ABLATIONS))
     if unknown:
-        raise ValueError(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS)}")
+        raise ValueError(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS + ORACLE_ABLATIONS)}")
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
     t0 = time.perf_counter()
     data = cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
@@ -212,17 +247,7 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
 
     ablations: Dict[str, Dict] = {}
     for name in cfg.ablations:
-        ab_cfg = make_trainer_config(data, out, B, C, F, experiment_name=f"ablation_{name}", progress=True,
-                                     resume_from=(checkpoint_dir, B + C - 1))
-        if name == "shared_only":
-            ab_cfg.pipeline.model.template_mix = 1.0
-        elif name == "offsets_only":
-            ab_cfg.pipeline.model.template_mix = 0.0
-        elif name == "no_pose_refinement":
-            ab_cfg.optimizers["instance_poses"]["optimizer"].lr = 0.0
-        trainer, seconds = _run(ab_cfg)
-        ablations[name] = {**test_metrics(trainer.pipeline), "time_s": seconds}
-        del trainer
+        ablations[name] = run_ablation(name, data, out, B, C, F, checkpoint_dir)
 
     return {
         "benchmark": "template",

@@ -49,8 +49,15 @@ def make_trainer_config(
     return config
 
 
-def run_training(config: TrainerConfig, after_step: Optional[Callable[[Trainer, int], None]] = None) -> Trainer:
+def run_training(
+    config: TrainerConfig,
+    after_step: Optional[Callable[[Trainer, int], None]] = None,
+    before_train: Optional[Callable[[Trainer], None]] = None,
+) -> Trainer:
     """Saves ``config.yml`` like ``ns-train`` does, trains, and returns the trainer.
+
+    ``before_train(trainer)`` runs once after setup (checkpoint loaded), before the first step: the oracle
+    ablations of ``bench template`` swap in ground-truth stages with it.
 
     ``after_step(trainer, step)`` runs after every training iteration, after the pipeline's own callbacks
     (so after the segmentation that ends the contrastive stage): benchmarks time stages and keep extra
@@ -62,6 +69,8 @@ def run_training(config: TrainerConfig, after_step: Optional[Callable[[Trainer, 
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
+    if before_train is not None:
+        before_train(trainer)
     if after_step is not None:
         trainer.callbacks.append(
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: after_step(trainer, step))
