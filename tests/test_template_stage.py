@@ -19,7 +19,7 @@ from splatreplace_ns.sim import make_scene
 FINETUNE = 120
 
 
-def ground_truth_registration(self, instances, classes, config):
+def ground_truth_registration(self, instances, classes, config, observed=None):
     """Stands in for the registration hook: T = P_template · P_instance⁻¹ from the parsed GT poses."""
     return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
 

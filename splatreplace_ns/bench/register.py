@@ -50,7 +50,7 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "no_upright", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp"
+    "ours", "no_upright", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp"
 )
 
 
@@ -71,7 +71,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, no_upright, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, no_upright, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """Settings of "ours"; each row changes only what it ablates. Its onnx_model (``--onnx-model`` under
@@ -361,6 +361,13 @@ def model_sh_degree(pipeline) -> Optional[int]:
     return min(steps // model_cfg.sh_degree_interval, model_cfg.sh_degree)
 
 
+def observed_training_depth(pipeline):
+    """The training views' rendered depth, as the pipeline hands it to registration's free-space check."""
+    from splatreplace_ns.register.free_space import observed_depth
+
+    return observed_depth(pipeline.scene_depth, pipeline.datamanager.train_dataset.cameras)
+
+
 def load_bench_scene(cfg: BenchRegisterConfig) -> BenchScene:
     """Scene, base model (trained or reused), ground-truth poses and ground-truth labels of the Gaussians."""
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
@@ -396,6 +403,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append(("ours", replace(base, method="ours")))
         elif row == "no_upright":  # full rigid ICP (the paper's) instead of turns about the floor's normal
             out.append((row, replace(base, method="ours", upright=False)))
+        elif row == "no_free_space":  # candidates not checked against the space the cameras saw through
+            out.append((row, replace(base, method="ours", max_free_space_violation=0.0)))
         elif row == "no_multistart":  # the paper's candidates: PnP poses of the top-k view pairs only
             out.append((row, replace(base, method="ours", multistart_turns=0)))
         elif row == "no_virtual_views":
@@ -417,7 +426,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, no_upright, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, no_upright, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp"
             )
     return out
@@ -463,6 +472,7 @@ def run_row(
     ground_truth: Dict[int, GroundTruthInstance],
     cameras: Optional[Tuple[torch.Tensor, torch.Tensor]],
     missing: Dict[int, str],
+    observed=None,
 ) -> Dict:
     """Registers the instances with one setting and scores every source against the ground truth.
 
@@ -472,12 +482,14 @@ def run_row(
         gt_of: {instance id: ground-truth id or None (unmatched segment)}.
         cameras: training (viewmats, Ks) at the registration image size, for no_virtual_views.
         missing: {instance id: reason} for instances that have no Gaussians (counted as failures).
+        observed: the training views' depth (``register.free_space.ObservedDepth``) for the free-space check.
     """
     if reg.method != "fpfh":
         for m in (reg.fast_matcher, reg.robust_matcher):
             _matcher_used(m, reg)  # load weights before the clock starts
     t0 = time.perf_counter()
-    results = register_instances(instances, classes, reg, cameras=cameras if reg.method == "no_virtual_views" else None)
+    results = register_instances(instances, classes, reg, cameras=cameras if reg.method == "no_virtual_views" else None,
+                                 observed=observed)
     wall = time.perf_counter() - t0
     per_instance = []
     for iid, res in results.items():
@@ -535,6 +547,7 @@ def run_rows(
     ground_truth: Dict[int, GroundTruthInstance],
     train_cameras: Tuple[torch.Tensor, torch.Tensor, int, int],
     label: str,
+    observed=None,
 ) -> List[Dict]:
     """Every row on one set of instances; a row whose settings equal an earlier row's reuses its result."""
     from rich.console import Console
@@ -554,7 +567,7 @@ def run_rows(
         else:
             cameras = (viewmats, scale_intrinsics(Ks, (width, height), tuple(reg.image_size)))
             console.log(f"[{label}] row {name} ...")
-            row = run_row(name, reg, present, classes, gt_of, ground_truth, cameras, empty)
+            row = run_row(name, reg, present, classes, gt_of, ground_truth, cameras, empty, observed)
             done.append((reg, row))
         console.log(
             f"[{label}] {name}: rot {row['rot_err_deg_mean']:.3f}° mean / {row['rot_err_deg_max']:.3f}° max, "
@@ -582,7 +595,8 @@ def run_segmentation_rows(cfg: BenchRegisterConfig, rows: List[Tuple[str, Regist
     gt_of = {iid: matched.get(iid, (None, 0.0))[0] for iid in classes}
     instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline))
     rows = with_floor_up_axes(rows, model.means.detach(), seg_labels)
-    result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation")
+    result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation",
+                           observed_training_depth(pipeline))
     hit = {g for g in gt_of.values() if g is not None}
     return {
         "rows": result_rows,
@@ -606,7 +620,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline))
     classes = {i: scene.ground_truth[i].cls for i in ids}
     result_rows = run_rows(
-        rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks"
+        rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks",
+        observed_training_depth(pipeline),
     )
     result: Dict[str, Any] = {
         "benchmark": "register",

@@ -32,6 +32,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 
+from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
 from splatreplace_ns.register.lifting import backproject
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
@@ -106,6 +107,17 @@ class RegistrationConfig:
             selection is unchanged. False: full rigid ICP only, as in the paper (bench register, row
             ``no_upright``).
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished.
+        max_free_space_violation: when the caller gives the training views' depth (``observed``), every
+            candidate places the template at the instance and measures how much of it lies in front of what
+            the cameras saw (:func:`~splatreplace_ns.register.free_space.free_space_violation`: mean fraction
+            of the seeing views); a chosen pose above this is a failure. 0: no free-space check at all.
+        free_space_slack: candidates whose violation exceeds the least one's by more than this lose to every
+            candidate within it, whatever their colour score. On office's segmented instances correct poses
+            scored 0.10–0.25 and a chair turned by 180° (35 % of its size off) about 0.3 against 0.23 for its
+            right pose: the level differs between instances (thin parts blend the rendered depth), the gap
+            between a right and a grossly wrong pose of one instance is what tells them apart.
+        free_space_margin_rel: a template point is in front of a surface only when nearer by more than this
+            fraction of the template's bounding-sphere radius (rendered depth at thin parts is blended).
         seed: RANSAC seed.
     """
 
@@ -141,6 +153,9 @@ class RegistrationConfig:
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     upright: bool = True
     upright_max_tilt_deg: float = 5.0
+    max_free_space_violation: float = 0.4
+    free_space_slack: float = 0.05
+    free_space_margin_rel: float = 0.15
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -413,6 +428,15 @@ def _refine(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, radius: float, c
     return T, fit
 
 
+def _violation(tpl: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig,
+               observed: Optional[ObservedDepth]) -> Optional[float]:
+    """Free-space violation of the template placed at the source (``T⁻¹ · template``); None when unchecked."""
+    if observed is None or cfg.max_free_space_violation <= 0 or len(observed.depths) == 0:
+        return None
+    inv = np.linalg.inv(T)
+    return free_space_violation(tpl @ inv[:3, :3].T + inv[:3, 3], observed, cfg.free_space_margin_rel * radius)
+
+
 def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig):
     """The chosen pose refined once more as a turn about ``cfg.up_axis`` plus a translation (finest ICP
     distance), when ``cfg.upright`` and its tilt is at most ``cfg.upright_max_tilt_deg`` (a pose tilted
@@ -515,6 +539,7 @@ def register_instance(
     cfg: Optional[RegistrationConfig] = None,
     template_views: Optional[InstanceViews] = None,
     cameras: Optional[tuple[Any, Any]] = None,
+    observed: Optional[ObservedDepth] = None,
 ) -> RegistrationResult:
     """Register one instance onto its template (paper §4.2).
 
@@ -525,6 +550,8 @@ def register_instance(
             cfg/cameras) to reuse across sources.
         cameras: (viewmats (V, 4, 4), K) to render both instances from, required by
             ``method="no_virtual_views"`` (ignored otherwise).
+        observed: the training views' depth, for the free-space check (``cfg.max_free_space_violation``);
+            None: no check.
     Returns:
         :class:`RegistrationResult` with ``transform`` (4, 4): template ≈ T · source. Never raises because
         registration fails: ``success=False`` and ``message`` names the instance.
@@ -598,19 +625,30 @@ def register_instance(
         score = None
     else:  # refine every candidate, keep the most photometrically consistent alignment
         src_rgb, tpl_rgb = _base_rgb(source)[src_keep], _base_rgb(template)[tpl_keep]
-        best = None
+        refined = []
         for n_inl, i, j, coarse in candidates:
             T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
             score = _photometric_fitness(src_c, src_rgb, tpl_c, tpl_rgb, T, cfg.icp_max_distance_rel * radius,
                                          cfg.color_tolerance)
-            key = (score, n_inl)
-            if best is None or key > best[0]:
-                best = (key, n_inl, i, j, coarse, T, fit)
-        (score, _), n_inl, i, j, coarse, T, fit = best
+            refined.append((_violation(tpl_c, T, radius, cfg, observed), score, n_inl, i, j, coarse, T, fit))
+        # free space first: a candidate that fills clearly more seen-through space than the cleanest one loses
+        # to every candidate within the slack of it, whatever its colour score
+        # (among the alignments that pass the fitness thresholds: one pushed out of every view fills nothing)
+        def acceptable(r) -> bool:
+            return r[7] >= cfg.min_fitness and r[1] >= cfg.min_photometric_fitness
+
+        least = min((r[0] for r in refined if r[0] is not None and acceptable(r)), default=None)
+        _, score, n_inl, i, j, coarse, T, fit = max(
+            refined,
+            key=lambda r: (acceptable(r), least is None or r[0] is None or r[0] <= least + cfg.free_space_slack,
+                           r[1], r[2], -r[3], -r[4]),
+        )
     T, polished = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    violation = _violation(tpl_c, T, radius, cfg, observed)
     if polished:
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
+    ok = ok and (violation is None or violation <= cfg.max_free_space_violation)
     if i < 0:
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
@@ -618,10 +656,14 @@ def register_instance(
     msg += (", ICP" if cfg.icp else "") + (" (upright)" if polished else "") + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
+    if violation is not None:
+        msg += f", free-space violation {violation:.3f}"
     if not ok:
         msg = (f"{_name(source)}: registration rejected (fitness {fit:.3f}, min {cfg.min_fitness}; "
                f"photometric fitness {score if score is not None else float('nan'):.3f}, "
-               f"min {cfg.min_photometric_fitness})")
+               f"min {cfg.min_photometric_fitness}"
+               + (f"; free-space violation {violation:.3f}, max {cfg.max_free_space_violation}"
+                  if violation is not None else "") + ")")
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
                               time.perf_counter() - t0, (i, j), coarse)
 
@@ -662,6 +704,7 @@ def register_instances(
     classes: dict[int, str],
     cfg: Optional[RegistrationConfig] = None,
     cameras: Optional[tuple[Any, Any]] = None,
+    observed: Optional[ObservedDepth] = None,
 ) -> dict[int, RegistrationResult]:
     """Register every instance to the template of its class.
 
@@ -670,6 +713,7 @@ def register_instances(
         classes: {instance id: class name} (every id of ``instances``).
         cfg: settings (default :class:`RegistrationConfig`).
         cameras: (viewmats (V, 4, 4), K) for ``method="no_virtual_views"``.
+        observed: the training views' depth for the free-space check (None: no check).
     Returns:
         {instance id: :class:`RegistrationResult`}; each template (and a class's only instance) gets the
         identity with ``success=True``.
@@ -698,5 +742,5 @@ def register_instances(
             tpl_views = render_instance_views(template, cfg, use_cams)
         for sid in sources:
             src = instances[sid] if instances[sid].id == sid else replace(instances[sid], id=sid)
-            results[sid] = register_instance(src, template, cfg, tpl_views, cameras)
+            results[sid] = register_instance(src, template, cfg, tpl_views, cameras, observed)
     return {i: results[i] for i in sorted(results)}
