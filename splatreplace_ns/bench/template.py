@@ -225,6 +225,8 @@ def run_ablation(name: str, data: Path, out: Path, B: int, C: int, F: int, check
     result = {**test_metrics(trainer.pipeline), "time_s": seconds}
     registration = trainer.pipeline.model.registration
     result["replaced"] = sorted(int(k) for k, v in registration.items() if v["success"])
+    result["registration"] = {int(k): v["message"] for k, v in registration.items()}
+    result["instances"] = [{k: i[k] for k in ("id", "class", "source") if k in i} for i in trainer.pipeline.model.instances]
     del trainer
     return result
 

@@ -69,6 +69,10 @@ def run_training(
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
+    if trainer._start_step > 0:  # resumed: nerfstudio's progress line counts from the loaded step
+        from nerfstudio.utils import writer
+
+        writer.GLOBAL_BUFFER["max_iter"] = trainer._start_step + config.max_num_iterations
     if before_train is not None:
         before_train(trainer)
     if after_step is not None:
