@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from scenes import look_at_cv
+from test_register_pipeline import tiny  # noqa: F401  (the fixture: ideal Gaussians of the tiny scene's crates)
 from splatreplace_ns.register.free_space import (
     ObservedDepth,
     free_space_violation,
@@ -72,30 +73,15 @@ def test_pooled_depth_keeps_the_nearest_surface_and_projects_consistently():
     np.testing.assert_array_equal(small, full // 4)
 
 
-@pytest.fixture(scope="module")
-def crates(tmp_path_factory):
-    import json
-
-    from test_register_pipeline import N_POINTS, oracle_gaussians
-    from splatreplace_ns.sim import load_scene_meshes, make_scene
-
-    path = make_scene("tiny", tmp_path_factory.mktemp("tiny_fs"), workers=1)
-    meta = json.loads(path.read_text())
-    meshes = load_scene_meshes(path)
-    poses = {int(i["id"]): np.asarray(i["transform_matrix"], dtype=np.float64) for i in meta["instances"]}
-    return {iid: oracle_gaussians(meshes[iid], poses[iid], "crate", n=N_POINTS - 100 * iid, seed=iid)
-            for iid in (1, 2)}, poses
-
-
-def test_registration_rejects_a_placement_in_seen_free_space(crates):
+def test_registration_rejects_a_placement_in_seen_free_space(tiny):
     """The same registration is accepted when the cameras saw nothing in front of the source, and rejected,
     with the reason named, when they saw straight through where it would stand."""
     from splatreplace_ns.register.pipeline import RegistrationConfig, register_instance
 
     torch.set_num_threads(1)
-    g, poses = crates
-    source, template = replace(g[2], id=2), replace(g[1], id=1)  # 1 has more Gaussians: the template
-    centre = poses[2][:3, 3]
+    g, poses = tiny["gaussians"], tiny["poses"]
+    source, template = replace(g[1], id=1), replace(g[2], id=2)  # 2 has the most Gaussians: the template
+    centre = poses[1][:3, 3]
     eye = centre + np.array([0.0, -6.0, 2.0])
     cfg = RegistrationConfig(image_size=(128, 96))
     distance = float(np.linalg.norm(eye - centre))
@@ -104,8 +90,8 @@ def test_registration_rejects_a_placement_in_seen_free_space(crates):
     assert "free-space violation 0.000" in hidden.message
     seen_through = register_instance(source, template, cfg, observed=wall_view(distance + 5.0, eye, centre))
     assert not seen_through.success
-    assert "instance 2" in seen_through.message and "free-space violation" in seen_through.message
-    np.testing.assert_allclose(hidden.transform[:3, 3], (poses[1] @ np.linalg.inv(poses[2]))[:3, 3], atol=0.05)
+    assert "instance 1" in seen_through.message and "free-space violation" in seen_through.message
+    np.testing.assert_allclose(hidden.transform[:3, 3], (poses[2] @ np.linalg.inv(poses[1]))[:3, 3], atol=0.05)
     # off: no check, no violation in the message
     off = register_instance(source, template, replace(cfg, max_free_space_violation=0.0),
                             observed=wall_view(distance + 5.0, eye, centre))
