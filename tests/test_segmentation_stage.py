@@ -171,8 +171,9 @@ def test_scores_against_a_reference_scene(segmented, tmp_path):
     assert pipeline.segmentation_report["skipped_clicks"] == []
     own = score_views_from_clicks(pipeline, data / "clicks.json")
     same = score_views_from_clicks(pipeline, data / "clicks.json", reference_scene=data)
-    # test views of a 400+300-iteration run: own-scene scores vary (0.47-0.60 seen), so the check is relative
-    assert own["miou"] > 0.3 and same["miou"] == own["miou"] and same["iou"] == own["iou"]
+    # test views of a 400+300-iteration run: own-scene scores vary (0.26-0.60 seen in CI runs), so the check is
+    # relative; the floor only makes sure the masks are far from empty, so that the swap below can tell
+    assert own["miou"] > 0.15 and same["miou"] == own["miou"] and same["iou"] == own["iou"]
     swapped = tmp_path / "swapped"
     shutil.copytree(data, swapped)
     clicks = json.loads((data / "clicks.json").read_text())
