@@ -96,3 +96,13 @@ def test_registration_rejects_a_placement_in_seen_free_space(tiny):
     off = register_instance(source, template, replace(cfg, max_free_space_violation=0.0),
                             observed=wall_view(distance + 5.0, eye, centre))
     assert off.success and "free-space" not in off.message
+
+
+def test_views_of_different_sizes():
+    """A capture's views may differ in size: each depth map is read with its own shape."""
+    big = wall_view(5.0)
+    small_K = scaled_intrinsics(K, 2.0)
+    mixed = ObservedDepth(np.concatenate([big.viewmats] * 2), np.stack([K, small_K]),
+                          [big.depths[0], np.full((H // 2, W // 2), np.inf)])
+    # seen on the wall in the full-size view, seen through in the half-size one
+    assert free_space_violation(cloud((0, 0, 0)), mixed, margin=0.5) == pytest.approx(0.5)

@@ -10,6 +10,7 @@ cost nothing; parts in front of them are violations.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -24,8 +25,8 @@ class ObservedDepth:
     """(V, 4, 4) world → camera (OpenCV: x right, y down, z forward)."""
     Ks: np.ndarray
     """(V, 3, 3) intrinsics of the stored depth maps (scaled with them)."""
-    depths: np.ndarray
-    """(V, H, W) depth along the camera z axis."""
+    depths: Sequence[np.ndarray]
+    """V depth maps (H_v, W_v) along the camera z axis (an array (V, H, W) when the views share one size)."""
 
 
 def pooled_depth(depth: torch.Tensor, max_width: int) -> tuple[torch.Tensor, float]:
@@ -72,8 +73,8 @@ def free_space_violation(points: np.ndarray, observed: ObservedDepth, margin: fl
         return 0.0
     front = np.zeros(len(pts))
     seen = np.zeros(len(pts))
-    height, width = observed.depths.shape[1:]
     for viewmat, K, depth in zip(observed.viewmats, observed.Ks, observed.depths):
+        height, width = depth.shape
         cam = pts @ np.asarray(viewmat[:3, :3], dtype=np.float64).T + np.asarray(viewmat[:3, 3], dtype=np.float64)
         z = cam[:, 2]
         ahead = z > 1e-6
@@ -101,14 +102,14 @@ def observed_depth(render_depth, cameras, max_views: int = 64, max_width: int = 
     from nerfstudio.models.splatfacto import get_viewmat
 
     n = len(cameras)
-    keep = np.unique(np.linspace(0, n - 1, num=min(n, max_views)).round().astype(int)) if n else np.zeros(0, int)
-    viewmats = get_viewmat(cameras.camera_to_worlds[keep].float()).cpu().numpy() if n else np.zeros((0, 4, 4))
-    Ks_full = cameras.get_intrinsics_matrices()[keep].float().cpu().numpy() if n else np.zeros((0, 3, 3))
+    if n == 0:
+        return ObservedDepth(np.zeros((0, 4, 4)), np.zeros((0, 3, 3)), [])
+    keep = np.unique(np.linspace(0, n - 1, num=min(n, max_views)).round().astype(int))
+    viewmats = get_viewmat(cameras.camera_to_worlds[keep].float()).cpu().numpy()
+    Ks_full = cameras.get_intrinsics_matrices()[keep].float().cpu().numpy()
     depths, Ks = [], []
     for k, idx in enumerate(keep):
         depth, factor = pooled_depth(render_depth(cameras[int(idx) : int(idx) + 1]).float().cpu(), max_width)
         depths.append(depth.numpy())
         Ks.append(scaled_intrinsics(Ks_full[k], factor))
-    if not depths:
-        return ObservedDepth(np.zeros((0, 4, 4)), np.zeros((0, 3, 3)), np.zeros((0, 1, 1)))
-    return ObservedDepth(viewmats, np.stack(Ks), np.stack(depths))
+    return ObservedDepth(viewmats, np.stack(Ks), depths)  # a list: the views of a capture may differ in size
