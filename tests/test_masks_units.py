@@ -118,6 +118,64 @@ def test_floor_removed_and_clicked_boxes_found_touching_ones_split():
     assert (ids[truth == 0] == 0).mean() > 0.97
 
 
+def test_floor_found_under_a_sparse_sky():
+    """An outdoor capture keeps sparse Gaussians far away (sky, floaters). Counted in the scene's diagonal they
+    made the floor "too small" to be a support, so nothing was removed and the floor joined the boxes; the
+    diagonal of the dense part keeps the floor a floor. Off (``dense_spacing`` 0), the floor stays."""
+    means, truth, colours = boxes_on_a_floor()
+    rng = np.random.default_rng(1)
+    direction = rng.normal(size=(3000, 3))
+    direction[:, 2] = np.abs(direction[:, 2])
+    sky = 8.0 * direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(0.8, 1.2, (3000, 1))
+    all_means = np.concatenate([means, sky])
+    opacities = np.ones(len(all_means))
+    all_colours = np.concatenate([colours, np.full((3000, 3), 0.7)])
+    clicks = [lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.8, -0.1, 0.5]), lifted(2, [0.8, 0.6, 0.5])]
+    cfg = ClusteringConfig()
+    clustering = cluster_gaussians(all_means, opacities, cfg)
+    assert len(clustering.planes) == 1 and abs(clustering.planes[0][2]) > 0.99
+    ids = instance_ids(clicks, all_means, opacities, all_colours, clustering, cfg)[: len(means)]
+    for k in (1, 2, 3):
+        a, b = ids == k, truth == k
+        assert (a & b).sum() / (a | b).sum() > 0.9, k
+    assert cluster_gaussians(all_means, opacities, ClusteringConfig(dense_spacing=0.0)).planes == []
+
+
+def test_plane_through_a_colonnade_is_not_a_support():
+    """Five square posts under a beam on a floor: the floor has nothing under it, a plane through the posts
+    has the colonnade on both sides. Only the floor is removed; without the one-side test planes through
+    the posts are removed too, and with them part of every post."""
+    from splatreplace_ns.masks.clustering import neighbourhood_spacing, remove_planes, two_sidedness
+
+    rng = np.random.default_rng(0)
+
+    def box(lo, hi, n, bottom=False):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        size = hi - lo
+        areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
+        face = rng.choice(3, n, p=areas / areas.sum())
+        pts = rng.uniform(lo, hi, (n, 3))
+        high = rng.integers(0, 2, n).astype(bool)
+        if not bottom:
+            high[face == 2] = True  # a post's foot stands on the floor: no Gaussian there
+        pts[np.arange(n), face] = np.where(high, hi[face], lo[face])
+        return pts
+
+    floor = np.c_[rng.uniform(-4, 4, (8000, 2)), rng.normal(0, 0.002, 8000)]
+    posts = [box([x - 0.15, -0.15, 0.0], [x + 0.15, 0.15, 1.0], 1200) for x in (-2, -1, 0, 1, 2)]
+    beam = box([-2.6, -0.15, 1.0], [2.6, 0.15, 1.3], 4000, bottom=True)
+    means = np.concatenate([floor] + posts + [beam])
+    spacing = neighbourhood_spacing(means, 8)
+    threshold = ClusteringConfig().plane_distance * spacing
+    assert two_sidedness(means, np.array([0.0, 0.0, 1.0, 0.0]), threshold) == 0.0  # the floor
+    assert two_sidedness(means, np.array([0.0, 1.0, 0.0, 0.0]), threshold) > 0.45  # through the posts' axes
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig())
+    assert len(planes) == 1 and abs(planes[0][2]) > 0.99
+    assert on_plane[8000:14000].mean() < 0.01
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(max_two_sidedness=0.5))
+    assert len(planes) > 1 and on_plane[8000:14000].mean() > 0.02
+
+
 def test_refined_plane_does_not_depend_on_the_ransac_sample():
     """Two RANSAC answers a sample apart refine to the same plane and inliers, bit for bit (so the same
     model gives the same mask bytes), and the refit is the least-squares floor."""

@@ -37,6 +37,16 @@ class ClusteringConfig:
     min_plane_extent: float = 0.3
     """A supporting plane's sheet spans at least this fraction of the scene's diagonal (floors and walls
     do; the coplanar faces of a few objects do not)."""
+    dense_spacing: float = 2.0
+    """The scene's diagonal is that of its dense part: the solid Gaussians whose ``cluster_min_points``-th
+    neighbour lies within this many spacings. An outdoor capture's sky and floaters are sparse and spread
+    far; counted, they made every floor "too small" to be one (temple: a diagonal four times the
+    colonnade's). 0 counts every solid Gaussian."""
+    max_two_sidedness: float = 0.35
+    """A supporting plane has the scene on one side: of the solid Gaussians just off it (between
+    ``plane_distance`` and ten times that), at most this fraction may lie on its less crowded side. A floor
+    has only floaters under it, while a plane through a row of columns (their axes and the beam's face)
+    has as much on either side. 0.5 turns the test off."""
     plane_normal_agreement: float = 0.8
     """A plane inlier must also face the plane's way (|cos| of its local normal with the plane's normal),
     so that a plane slicing obliquely through furniture does not count the furniture as its support."""
@@ -131,6 +141,29 @@ def robust_diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
+def dense_diagonal(points: np.ndarray, spacing: float, k: int, factor: float) -> float:
+    """:func:`robust_diagonal` of the [P, 3] points whose k-th nearest neighbour lies within ``factor`` ×
+    ``spacing`` (of all of them when ``factor`` is 0 or no point qualifies)."""
+    from scipy.spatial import cKDTree
+
+    if factor <= 0 or len(points) <= k:
+        return robust_diagonal(points)
+    dist, _ = cKDTree(points).query(points, k=k + 1)
+    dense = dist[:, k] <= factor * spacing
+    return robust_diagonal(points[dense] if dense.any() else points)
+
+
+def two_sidedness(points: np.ndarray, plane: np.ndarray, threshold: float) -> float:
+    """Fraction of the [P, 3] points between ``threshold`` and 10 × ``threshold`` from the [4] plane (unit
+    normal) that lie on its less crowded side; 0 when there are none."""
+    signed = points @ plane[:3] + plane[3]
+    near = (np.abs(signed) > threshold) & (np.abs(signed) <= 10.0 * threshold)
+    if not near.any():
+        return 0.0
+    above = float((signed[near] > 0).mean())
+    return min(above, 1.0 - above)
+
+
 def largest_component(points: np.ndarray, eps: float) -> np.ndarray:
     """Indices of the largest DBSCAN component of [P, 3] points (linked within ``eps``)."""
     labels = np.asarray(_cloud(points).cluster_dbscan(eps, 3, print_progress=False), dtype=np.int64)
@@ -189,7 +222,7 @@ def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> 
 
     o3d.utility.random.seed(cfg.seed)
     normals = local_normals(points, spacing)
-    scene_diagonal = robust_diagonal(points)
+    scene_diagonal = dense_diagonal(points, spacing, cfg.cluster_min_points, cfg.dense_spacing)
     on_plane = np.zeros(len(points), dtype=bool)
     set_aside = np.zeros(len(points), dtype=bool)
     planes: List[np.ndarray] = []
@@ -211,14 +244,19 @@ def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> 
             set_aside[inliers] = True  # not a supporting plane; look past these points
             continue
         inliers = inliers[facing]
-        # a supporting plane is one connected sheet (the floor, a wall), not the seats of nine chairs
-        sheet = inliers[largest_component(points[inliers], cfg.cluster_eps * spacing)]
+        # a supporting plane is one connected sheet (the floor, a wall), not the seats of nine chairs; linked
+        # at the sheet's own spacing, since a floor seen at a grazing angle holds sparser Gaussians than the objects
+        own = neighbourhood_spacing(points[inliers], cfg.cluster_min_points)
+        sheet = inliers[largest_component(points[inliers], cfg.cluster_eps * max(spacing, own))]
         if len(sheet) < cfg.min_plane_fraction * len(points):
             set_aside[inliers] = True
             continue
         set_aside[np.setdiff1d(inliers, sheet)] = True
         inliers = sheet
         if robust_diagonal(points[inliers]) < cfg.min_plane_extent * scene_diagonal:
+            set_aside[inliers] = True
+            continue
+        if two_sidedness(points, plane, threshold) > cfg.max_two_sidedness:
             set_aside[inliers] = True
             continue
         on_plane[inliers] = True
