@@ -9,7 +9,7 @@ densely the base stage filled it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Sequence, Tuple
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -106,14 +106,23 @@ class Clustering:
     """Removed planes as [4] (a, b, c, d) with a x + b y + c z + d = 0."""
 
 
-def neighbourhood_spacing(points: np.ndarray, k: int) -> float:
-    """Median distance from each of [P, 3] points to its k-th nearest neighbour."""
+def kth_neighbour_distances(points: np.ndarray, k: int) -> np.ndarray:
+    """[P] distance from each of [P, 3] points to its k-th nearest neighbour (empty when P <= k)."""
     from scipy.spatial import cKDTree
 
     if len(points) <= k:
-        return 1.0
+        return np.zeros(0)
     dist, _ = cKDTree(points).query(points, k=k + 1)
-    return float(max(np.median(dist[:, k]), 1e-9))
+    return dist[:, k]
+
+
+def neighbourhood_spacing(points: np.ndarray, k: int, kth: Optional[np.ndarray] = None) -> float:
+    """Median distance from each of [P, 3] points to its k-th nearest neighbour (``kth``: those distances,
+    when already known)."""
+    kth = kth_neighbour_distances(points, k) if kth is None else kth
+    if len(kth) == 0:
+        return 1.0
+    return float(max(np.median(kth), 1e-9))
 
 
 def _cloud(points: np.ndarray):
@@ -141,15 +150,12 @@ def robust_diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def dense_diagonal(points: np.ndarray, spacing: float, k: int, factor: float) -> float:
-    """:func:`robust_diagonal` of the [P, 3] points whose k-th nearest neighbour lies within ``factor`` ×
-    ``spacing`` (of all of them when ``factor`` is 0 or no point qualifies)."""
-    from scipy.spatial import cKDTree
-
-    if factor <= 0 or len(points) <= k:
+def dense_diagonal(points: np.ndarray, spacing: float, kth: np.ndarray, factor: float) -> float:
+    """:func:`robust_diagonal` of the [P, 3] points whose [P] k-th neighbour distance ``kth`` is within
+    ``factor`` × ``spacing`` (of all of them when ``factor`` is 0 or no point qualifies)."""
+    if factor <= 0 or len(kth) != len(points):
         return robust_diagonal(points)
-    dist, _ = cKDTree(points).query(points, k=k + 1)
-    dense = dist[:, k] <= factor * spacing
+    dense = kth <= factor * spacing
     return robust_diagonal(points[dense] if dense.any() else points)
 
 
@@ -204,7 +210,9 @@ def refine_plane(points: np.ndarray, plane: np.ndarray, threshold: float, max_ro
     return plane, inliers
 
 
-def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> Tuple[np.ndarray, List[np.ndarray]]:
+def remove_planes(
+    points: np.ndarray, spacing: float, cfg: ClusteringConfig, kth: Optional[np.ndarray] = None
+) -> Tuple[np.ndarray, List[np.ndarray]]:
     """Iteratively finds the largest planes (RANSAC) and marks their inliers.
 
     Only inliers whose local normal faces the plane's way count, and only their largest connected
@@ -214,6 +222,7 @@ def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> 
     Args:
         points: [P, 3] solid Gaussian centres.
         spacing: the length unit.
+        kth: [P] distance of each point to its ``cluster_min_points``-th neighbour (computed when None).
 
     Returns:
         on_plane [P] bool, the removed planes ([4] each).
@@ -222,7 +231,8 @@ def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> 
 
     o3d.utility.random.seed(cfg.seed)
     normals = local_normals(points, spacing)
-    scene_diagonal = dense_diagonal(points, spacing, cfg.cluster_min_points, cfg.dense_spacing)
+    kth = kth_neighbour_distances(points, cfg.cluster_min_points) if kth is None else kth
+    scene_diagonal = dense_diagonal(points, spacing, kth, cfg.dense_spacing)
     on_plane = np.zeros(len(points), dtype=bool)
     set_aside = np.zeros(len(points), dtype=bool)
     planes: List[np.ndarray] = []
@@ -311,8 +321,9 @@ def cluster_gaussians(means: np.ndarray, opacities: np.ndarray, cfg: ClusteringC
     if int(solid.sum()) < cfg.cluster_min_points:
         return Clustering(labels, 1.0)
     points = means[solid]
-    spacing = neighbourhood_spacing(points, cfg.cluster_min_points)
-    on_plane, planes = remove_planes(points, spacing, cfg)
+    kth = kth_neighbour_distances(points, cfg.cluster_min_points)  # one query for the spacing and the diagonal
+    spacing = neighbourhood_spacing(points, cfg.cluster_min_points, kth)
+    on_plane, planes = remove_planes(points, spacing, cfg, kth)
     solid_labels = np.full(len(points), PLANE, dtype=np.int64)
     solid_labels[~on_plane] = cluster_points(points[~on_plane], spacing, cfg)
     solid_labels = reclaim(points, solid_labels, on_plane, spacing, cfg)
