@@ -34,6 +34,9 @@ import torch
 
 from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
+from splatreplace_ns.register.level_colour import (
+    gaussian_normals, level_colour_difference, prefer_level_colour, turn_between_deg,
+)
 from splatreplace_ns.register.lifting import backproject
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
@@ -118,6 +121,20 @@ class RegistrationConfig:
             between a right and a grossly wrong pose of one instance is what tells them apart.
         free_space_margin_rel: a template point is in front of a surface only when nearer by more than this
             fraction of the template's bounding-sphere radius (rendered depth at thin parts is blended).
+        level_colour: after the colour score has chosen, a candidate at another turn that fits the shape about
+            as well (fitness ≥ ``level_colour_fitness_ratio`` × the chosen one's) replaces it when the colours of
+            the level faces (normal along ``up_axis``: tops, seats) agree clearly better
+            (:mod:`~splatreplace_ns.register.level_colour`). Under one light a wrong turn can match a copy's
+            lit side to the template's lit side and win on overall colour; level faces get the same light
+            under every turn. On office's tables (turned by 180° against the template) the right pose's level
+            faces differ by 0.077–0.089 in RGB, the flipped pose's by 0.105–0.126. False: off (bench register,
+            row ``no_level_colour``).
+        level_colour_fitness_ratio: see ``level_colour`` (the tables' right poses fit 0.92–0.94 × as well as
+            their flips; wrong turns of the chairs 0.33–0.65 ×).
+        level_colour_margin: the replacing candidate's level-face difference must be below (1 − margin) × the
+            chosen one's.
+        level_colour_min_pairs: both need this many overlapping level-face centres (a column's few level
+            Gaussians, 0–20 on temple, say nothing).
         seed: RANSAC seed.
     """
 
@@ -156,6 +173,10 @@ class RegistrationConfig:
     max_free_space_violation: float = 0.4
     free_space_slack: float = 0.05
     free_space_margin_rel: float = 0.15
+    level_colour: bool = True
+    level_colour_fitness_ratio: float = 0.85
+    level_colour_margin: float = 0.15
+    level_colour_min_pairs: int = 50
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -509,6 +530,28 @@ def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float)
     return float(ok.mean())
 
 
+def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src_rgb, tpl_rgb, radius,
+                         cfg: RegistrationConfig):
+    """``chosen`` or a candidate of ``pool`` (refined tuples, index 6 = T, 7 = fitness) whose level faces agree
+    clearly better in colour (:func:`~splatreplace_ns.register.level_colour.prefer_level_colour`). → (tuple, note)"""
+    if len(pool) < 2:
+        return chosen, ""
+    src_c, tpl_c = source.centres()[src_keep], template.centres()[tpl_keep]
+    src_n = gaussian_normals(_np(source.quats), _np(source.scales))[src_keep]
+    tpl_n = gaussian_normals(_np(template.quats), _np(template.scales))[tpl_keep]
+    dist = cfg.icp_max_distance_rel * radius
+    diffs = [level_colour_difference(src_c, src_rgb, src_n, tpl_c, tpl_rgb, tpl_n, r[6], dist, cfg.up_axis)
+             for r in pool]
+    at = next(k for k, r in enumerate(pool) if r is chosen)
+    better = prefer_level_colour([r[6] for r in pool], [r[7] for r in pool], diffs, at,
+                                 cfg.level_colour_fitness_ratio, cfg.level_colour_margin, cfg.level_colour_min_pairs)
+    if better is None:
+        return chosen, ""
+    note = (f"level faces chose a turn of {turn_between_deg(pool[better][6], chosen[6]):.0f}° from the colour "
+            f"score's pose (difference {diffs[better][0]:.3f} against {diffs[at][0]:.3f})")
+    return pool[better], note
+
+
 # ----------------------------------------------------------------------------- registration
 
 
@@ -619,6 +662,7 @@ def register_instance(
         return fail(f"registration failed, no view pair gave a pose ({detail})")
 
     candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
+    level_note = ""
     if cfg.select == "inliers":  # the paper: the pair with the most PnP inliers, then ICP
         n_inl, i, j, coarse = candidates[0]
         T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
@@ -638,11 +682,16 @@ def register_instance(
             return r[7] >= cfg.min_fitness and r[1] >= cfg.min_photometric_fitness
 
         least = min((r[0] for r in refined if r[0] is not None and acceptable(r)), default=None)
-        _, score, n_inl, i, j, coarse, T, fit = max(
-            refined,
-            key=lambda r: (acceptable(r), least is None or r[0] is None or r[0] <= least + cfg.free_space_slack,
-                           r[1], r[2], -r[3], -r[4]),
-        )
+
+        def clean(r) -> bool:
+            return least is None or r[0] is None or r[0] <= least + cfg.free_space_slack
+
+        chosen = max(refined, key=lambda r: (acceptable(r), clean(r), r[1], r[2], -r[3], -r[4]))
+        if cfg.level_colour and acceptable(chosen) and clean(chosen):
+            chosen, level_note = _level_colour_choice(
+                chosen, [r for r in refined if acceptable(r) and clean(r)], source, template, src_keep, tpl_keep,
+                src_rgb, tpl_rgb, radius, cfg)
+        _, score, n_inl, i, j, coarse, T, fit = chosen
     T, polished = _upright_polish(src_c, tpl_c, T, radius, cfg)
     violation = _violation(tpl_c, T, radius, cfg, observed)
     if polished:
@@ -656,6 +705,8 @@ def register_instance(
     msg += (", ICP" if cfg.icp else "") + (" (upright)" if polished else "") + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
+    if level_note:
+        msg += f", {level_note}"
     if violation is not None:
         msg += f", free-space violation {violation:.3f}"
     if not ok:
