@@ -254,3 +254,25 @@ def test_multistart_registers_when_no_view_pair_gives_a_pose(tiny):
     rot_err, t_err = pose_errors(res.transform, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], "crate")
     print(f"multi-start only: rot {rot_err:.3f} deg, trans {100 * t_err:.3f} %, {res.message}")
     assert rot_err < 1.0 and t_err < 0.01, res.message
+
+
+def test_choose_candidate_shape_first_then_colour():
+    """Order of the candidate choice: acceptable, free space, shape (fitness within the ratio of the best),
+    colour. A wrong pose of a partly seen copy that wins on colour but fits clearly worse (office's segmented
+    chair 5: fitness 0.535 against 0.680) loses; a near-symmetric one that fits as well (a table's flip) does not."""
+    from splatreplace_ns.register.pipeline import choose_candidate
+
+    cfg = RegistrationConfig()
+    ties = [(0, 0, -k) for k in range(4)]
+    # 0: wrong, better colour, worse shape; 1: right; 2: unacceptable (colour below the minimum); 3: dirty
+    fitness, colour, violation = [0.535, 0.680, 0.99, 0.95], [0.29, 0.25, 0.05, 0.9], [0.17, 0.17, 0.0, 0.5]
+    chosen, pool = choose_candidate(fitness, colour, violation, ties, cfg)
+    assert chosen == 1 and pool == [0, 1]
+    chosen, _ = choose_candidate(fitness, colour, violation, ties, replace(cfg, colour_fitness_ratio=0.0))
+    assert chosen == 0  # the colour score alone (row no_shape_first)
+    # within the ratio the colour score still decides (0.9 ≥ 0.85 × 0.95)
+    chosen, _ = choose_candidate([0.90, 0.95], [0.6, 0.5], [None, None], ties[:2], cfg)
+    assert chosen == 0
+    # nothing acceptable: still an index (the caller reports the failure), and an empty pool
+    chosen, pool = choose_candidate([0.1, 0.15], [0.5, 0.4], [None, None], ties[:2], cfg)
+    assert chosen in (0, 1) and pool == []

@@ -121,6 +121,12 @@ class RegistrationConfig:
             between a right and a grossly wrong pose of one instance is what tells them apart.
         free_space_margin_rel: a template point is in front of a surface only when nearer by more than this
             fraction of the template's bounding-sphere radius (rendered depth at thin parts is blended).
+        colour_fitness_ratio: with select="photometric", the colour score chooses only among the acceptable
+            candidates whose fitness is at least this fraction of the best one's (shape first). Under one light
+            a side face's colour depends on where it points in the world, so a wrong pose that lays a partly
+            seen copy's lit faces on the template's lit faces can win on colour while fitting the shape clearly
+            worse (office's segmented chair 5: 178° off, fitness 0.535 against 0.680 for its right pose). 0: the
+            colour score alone (bench register, row ``no_shape_first``).
         level_colour: after the colour score has chosen, a candidate at another turn that fits the shape about
             as well (fitness ≥ ``level_colour_fitness_ratio`` × the chosen one's) replaces it when the colours of
             the level faces (normal along ``up_axis``: tops, seats) agree clearly better
@@ -173,6 +179,7 @@ class RegistrationConfig:
     max_free_space_violation: float = 0.4
     free_space_slack: float = 0.05
     free_space_margin_rel: float = 0.15
+    colour_fitness_ratio: float = 0.85
     level_colour: bool = True
     level_colour_fitness_ratio: float = 0.85
     level_colour_margin: float = 0.15
@@ -530,6 +537,36 @@ def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float)
     return float(ok.mean())
 
 
+def choose_candidate(
+    fitness: Sequence[float], colour: Sequence[float], violation: Sequence[Optional[float]],
+    tiebreak: Sequence[tuple], cfg: RegistrationConfig,
+) -> tuple[int, list[int]]:
+    """Which refined candidate pose to keep (``select="photometric"``), and the pool the level faces may pick from.
+
+    In order: acceptable candidates (fitness ≥ ``min_fitness``, colour score ≥ ``min_photometric_fitness``)
+    before the others; free space (a candidate that fills clearly more seen-through space than the cleanest
+    acceptable one, by more than ``free_space_slack``, loses to every one within it); shape (fitness ≥
+    ``colour_fitness_ratio`` × the best fitness among the acceptable, clean ones); then the colour score; ties
+    go to ``tiebreak`` (larger wins).
+
+    Args:
+        fitness, colour: (C,) ICP fitness and colour score of each candidate.
+        violation: (C,) free-space violation, None where unchecked.
+        tiebreak: (C,) tuples compared last (e.g. PnP inliers, then the earlier view pair).
+    Returns:
+        the chosen index; indices of the acceptable candidates within the free-space slack.
+    """
+    n = len(fitness)
+    acceptable = [fitness[k] >= cfg.min_fitness and colour[k] >= cfg.min_photometric_fitness for k in range(n)]
+    least = min((violation[k] for k in range(n) if violation[k] is not None and acceptable[k]), default=None)
+    clean = [least is None or violation[k] is None or violation[k] <= least + cfg.free_space_slack for k in range(n)]
+    pool = [k for k in range(n) if acceptable[k] and clean[k]]
+    best_fit = max((fitness[k] for k in pool), default=0.0)
+    fits = [fitness[k] >= cfg.colour_fitness_ratio * best_fit for k in range(n)]
+    chosen = max(range(n), key=lambda k: (acceptable[k], clean[k], fits[k], colour[k], tiebreak[k]))
+    return chosen, pool
+
+
 def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src_rgb, tpl_rgb, radius,
                          cfg: RegistrationConfig):
     """``chosen`` or a candidate of ``pool`` (refined tuples, index 6 = T, 7 = fitness) whose level faces agree
@@ -675,22 +712,13 @@ def register_instance(
             score = _photometric_fitness(src_c, src_rgb, tpl_c, tpl_rgb, T, cfg.icp_max_distance_rel * radius,
                                          cfg.color_tolerance)
             refined.append((_violation(tpl_c, T, radius, cfg, observed), score, n_inl, i, j, coarse, T, fit))
-        # free space first: a candidate that fills clearly more seen-through space than the cleanest one loses
-        # to every candidate within the slack of it, whatever its colour score
-        # (among the alignments that pass the fitness thresholds: one pushed out of every view fills nothing)
-        def acceptable(r) -> bool:
-            return r[7] >= cfg.min_fitness and r[1] >= cfg.min_photometric_fitness
-
-        least = min((r[0] for r in refined if r[0] is not None and acceptable(r)), default=None)
-
-        def clean(r) -> bool:
-            return least is None or r[0] is None or r[0] <= least + cfg.free_space_slack
-
-        chosen = max(refined, key=lambda r: (acceptable(r), clean(r), r[1], r[2], -r[3], -r[4]))
-        if cfg.level_colour and acceptable(chosen) and clean(chosen):
+        at, pool = choose_candidate([r[7] for r in refined], [r[1] for r in refined], [r[0] for r in refined],
+                                    [(r[2], -r[3], -r[4]) for r in refined], cfg)
+        chosen = refined[at]
+        if cfg.level_colour and at in pool:
             chosen, level_note = _level_colour_choice(
-                chosen, [r for r in refined if acceptable(r) and clean(r)], source, template, src_keep, tpl_keep,
-                src_rgb, tpl_rgb, radius, cfg)
+                chosen, [refined[k] for k in pool], source, template, src_keep, tpl_keep, src_rgb, tpl_rgb, radius,
+                cfg)
         _, score, n_inl, i, j, coarse, T, fit = chosen
     T, polished = _upright_polish(src_c, tpl_c, T, radius, cfg)
     violation = _violation(tpl_c, T, radius, cfg, observed)
