@@ -254,7 +254,9 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
         extra["stage"] = "segmented"
         torch.save(state, seg_models / ckpt.name)
 
-    seg_cfg = replace(cfg, rows=("ours",), seg_run=config.get_base_dir() / "config.yml", json=None)
+    last_step = max(int(p.stem.split("-")[1]) for p in seg_models.glob("step-*.ckpt"))
+    seg_cfg = replace(cfg, rows=("ours",), seg_run=config.get_base_dir() / "config.yml", seg_step=last_step,
+                      json=None)
     result = run_register_bench(seg_cfg, scene)
     matching = result["segmentation"]["matching"]
     assert {int(k): v["gt_id"] for k, v in matching.items()} == {v: k for k, v in rename.items()}
@@ -278,8 +280,25 @@ def test_row_settings_differ_only_where_the_row_says():
     ours = rows["ours"]
     assert ours.multistart_turns > 0 and ours.icp and ours.method == "ours" and ours.upright
     assert rows["no_upright"] == replace(ours, upright=False)
+    more = dict(row_configs(BenchRegisterConfig(), ("ours", "no_shape_first", "no_level_colour")))
+    assert ours.colour_fitness_ratio > 0 and ours.level_colour
+    assert more["no_shape_first"] == replace(ours, colour_fitness_ratio=0.0)
+    assert more["no_level_colour"] == replace(ours, level_colour=False)
     assert rows["no_multistart"] == replace(ours, multistart_turns=0)
     assert rows["no_icp"] == replace(ours, icp=False)
     assert rows["fpfh"] == replace(ours, method="fpfh")
     with pytest.raises(ValueError, match="no_multistart"):
         row_configs(BenchRegisterConfig(), ("nonsense",))
+
+
+def test_load_pipeline_names_the_missing_checkpoint_step(tmp_path):
+    from splatreplace_ns.bench.register import load_pipeline
+
+    models = tmp_path / "nerfstudio_models"
+    models.mkdir()
+    (models / "step-000000299.ckpt").write_bytes(b"")
+    (tmp_path / "config.yml").write_text("")
+    with pytest.raises(FileNotFoundError, match=r"no checkpoint of step 1999 \(the run has step-000000299.ckpt\)"):
+        load_pipeline(tmp_path / "config.yml", step=1999)
+    with pytest.raises(FileNotFoundError, match="not a finished run"):
+        load_pipeline(tmp_path / "missing.yml")

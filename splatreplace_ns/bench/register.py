@@ -82,6 +82,9 @@ class BenchRegisterConfig:
     surface Gaussians, and a tight margin leaves them unlabelled)."""
     seg_run: Optional[Path] = None
     """config.yml of a finished splat-replace run with segmentation: also register its segmented instances."""
+    seg_step: Optional[int] = None
+    """Checkpoint step of --seg-run to load (default: its latest). After fine-tuning the instances share their
+    templates; the checkpoint at the end of segmentation (step base + contrastive − 1) still has them apart."""
     seg_rows: Optional[Tuple[str, ...]] = None
     """Rows for the segmented instances (default: the same as --rows)."""
     data_root: Path = Path("benchmarks/data")
@@ -233,8 +236,12 @@ def _finished_run(config_path: Path) -> bool:
     return config_path.exists() and models.is_dir() and any(models.glob("step-*.ckpt"))
 
 
-def load_pipeline(config_path: Path):
-    """A finished run's pipeline (eval mode) from its config.yml, with a clear error when it is not one."""
+def load_pipeline(config_path: Path, step: Optional[int] = None):
+    """A finished run's pipeline (eval mode) from its config.yml, with a clear error when it is not one.
+
+    Args:
+        step: the checkpoint step to load (default: the latest).
+    """
     from nerfstudio.utils.eval_utils import eval_setup
 
     config_path = Path(config_path)
@@ -242,7 +249,18 @@ def load_pipeline(config_path: Path):
         raise FileNotFoundError(
             f"{config_path}: not a finished run (need config.yml with nerfstudio_models/step-*.ckpt beside it)"
         )
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
+    update = None
+    if step is not None:
+        ckpt = config_path.parent / "nerfstudio_models" / f"step-{step:09d}.ckpt"
+        if not ckpt.exists():
+            have = sorted(p.name for p in ckpt.parent.glob("step-*.ckpt"))
+            raise FileNotFoundError(f"{ckpt}: no checkpoint of step {step} (the run has {', '.join(have)})")
+
+        def update(config):
+            config.load_step = step
+            return config
+
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=update)
     pipeline.eval()
     return pipeline
 
@@ -584,11 +602,12 @@ def run_rows(
 
 def run_segmentation_rows(cfg: BenchRegisterConfig, rows: List[Tuple[str, RegistrationConfig]]) -> Dict:
     """Registers the segmented instances of ``cfg.seg_run`` and scores them against the ground truth."""
-    pipeline = load_pipeline(cfg.seg_run)
+    pipeline = load_pipeline(cfg.seg_run, cfg.seg_step)
     model = pipeline.model
     if not model.instances or model.instance_labels.shape[0] != model.num_points:
         raise ValueError(
-            f"{cfg.seg_run}: the run has no segmentation in its checkpoint (stage {model.stage!r}); train it with "
+            f"{cfg.seg_run}: the run has no segmentation in its checkpoint (stage {model.stage!r}; after fine-tuning "
+            "give --seg-step, the step at the end of segmentation); train it with "
             "contrastive iterations > 0 and clicks"
         )
     ground_truth = ground_truth_instances(pipeline)
