@@ -271,6 +271,13 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
         if twin["success"]:
             assert entry["rot_err_deg"] == pytest.approx(twin["rot_err_deg"], abs=1e-6)
             assert entry["trans_err_rel"] == pytest.approx(twin["trans_err_rel"], abs=1e-9)
+    # --seg-only: the same segmented rows without the preset's base model
+    alone = run_register_bench(replace(seg_cfg, seg_only=True))
+    assert alone["rows"] == [] and alone["segmentation"]["matching"] == matching
+    assert [e["rot_err_deg"] for e in alone["rows_segmentation"][0]["per_instance"]] == pytest.approx(
+        [e["rot_err_deg"] for e in seg_row["per_instance"]], abs=1e-6, nan_ok=True)
+    with pytest.raises(ValueError, match="--seg-only needs --seg-run"):
+        run_register_bench(replace(seg_cfg, seg_only=True, seg_run=None))
 
 
 def test_row_settings_differ_only_where_the_row_says():

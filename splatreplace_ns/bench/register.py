@@ -82,6 +82,9 @@ class BenchRegisterConfig:
     surface Gaussians, and a tight margin leaves them unlabelled)."""
     seg_run: Optional[Path] = None
     """config.yml of a finished splat-replace run with segmentation: also register its segmented instances."""
+    seg_only: bool = False
+    """With --seg-run: register only its segmented instances (the preset's base model is neither loaded nor
+    trained; the ground truth comes from the run's own dataset)."""
     seg_step: Optional[int] = None
     """Checkpoint step of --seg-run to load (default: its latest). After fine-tuning the instances share their
     templates; the checkpoint at the end of segmentation (step base + contrastive − 1) still has them apart."""
@@ -635,6 +638,18 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     """The whole benchmark on one preset (``scene``: an already loaded one, else loaded or trained here)."""
     t_start = time.perf_counter()
     load_avg = os.getloadavg() if hasattr(os, "getloadavg") else None
+    if cfg.seg_only:
+        if cfg.seg_run is None:
+            raise ValueError("--seg-only needs --seg-run CONFIG.yml (a finished splat-replace run with segmentation)")
+        torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
+        seg = run_segmentation_rows(cfg, row_configs(cfg, tuple(cfg.seg_rows or cfg.rows)))
+        return {
+            "benchmark": "register", "preset": cfg.preset, "rows": [], "rows_segmentation": seg.pop("rows"),
+            "segmentation": seg, "time_s": {"total": time.perf_counter() - t_start},
+            "parameters": {"seg_run": _shown_path(cfg.seg_run), "seg_step": cfg.seg_step,
+                           "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)}},
+            "machine": machine_info(load_avg),
+        }
     scene = scene or load_bench_scene(cfg)
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
     pipeline = scene.pipeline
@@ -702,7 +717,7 @@ def print_table(result: Dict) -> None:
         return "—" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
 
     console = Console(width=max(120, Console().width))  # not squeezed to 80 columns when piped to a log
-    tables = [("rows", "instances from ground-truth masks")]
+    tables = [("rows", "instances from ground-truth masks")] if result["rows"] else []
     if "rows_segmentation" in result:
         tables.append(("rows_segmentation", "instances from the segmentation stage"))
     for key, title in tables:
