@@ -14,6 +14,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from splatreplace_ns.register.errors import geodesic_deg
+
 LEVEL_MIN_COS = 0.9
 """A Gaussian is on a level face when its normal is within ~26° of the up axis (either sign: a face pointing
 down also gets the same light under every turn)."""
@@ -73,12 +75,6 @@ def level_colour_difference(
     return float(np.abs(src_rgb[pair] - tgt_rgb[idx[pair]]).mean()), int(pair.sum())
 
 
-def turn_between_deg(A: np.ndarray, B: np.ndarray) -> float:
-    """Geodesic angle (degrees) between the rotation parts of two (4, 4) transforms."""
-    R = A[:3, :3].T @ B[:3, :3]
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def prefer_level_colour(
     poses: Sequence[np.ndarray], fitness: Sequence[float], differences: Sequence[tuple[float, int]], chosen: int,
     fitness_ratio: float, margin: float, min_pairs: int, min_turn_deg: float = 45.0,
@@ -108,7 +104,7 @@ def prefer_level_colour(
     for k, (diff, pairs) in enumerate(differences):
         if k == chosen or pairs < min_pairs or not np.isfinite(diff):
             continue
-        if fitness[k] < fitness_ratio * fitness[chosen] or turn_between_deg(poses[k], poses[chosen]) < min_turn_deg:
+        if fitness[k] < fitness_ratio * fitness[chosen] or geodesic_deg(poses[k][:3, :3], poses[chosen][:3, :3]) < min_turn_deg:
             continue
         if diff < best_diff:
             best, best_diff = k, diff

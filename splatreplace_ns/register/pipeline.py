@@ -34,9 +34,8 @@ import torch
 
 from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
-from splatreplace_ns.register.level_colour import (
-    gaussian_normals, level_colour_difference, prefer_level_colour, turn_between_deg,
-)
+from splatreplace_ns.register.errors import geodesic_deg
+from splatreplace_ns.register.level_colour import gaussian_normals, level_colour_difference, prefer_level_colour
 from splatreplace_ns.register.lifting import backproject
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
@@ -584,7 +583,7 @@ def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src
                                  cfg.level_colour_fitness_ratio, cfg.level_colour_margin, cfg.level_colour_min_pairs)
     if better is None:
         return chosen, ""
-    note = (f"level faces chose a turn of {turn_between_deg(pool[better][6], chosen[6]):.0f}° from the colour "
+    note = (f"level faces chose a turn of {geodesic_deg(pool[better][6][:3, :3], chosen[6][:3, :3]):.0f}° from the colour "
             f"score's pose (difference {diffs[better][0]:.3f} against {diffs[at][0]:.3f})")
     return pool[better], note
 
