@@ -104,7 +104,8 @@ def prefer_level_colour(
     for k, (diff, pairs) in enumerate(differences):
         if k == chosen or pairs < min_pairs or not np.isfinite(diff):
             continue
-        if fitness[k] < fitness_ratio * fitness[chosen] or geodesic_deg(poses[k][:3, :3], poses[chosen][:3, :3]) < min_turn_deg:
+        turn = geodesic_deg(poses[k][:3, :3], poses[chosen][:3, :3])
+        if fitness[k] < fitness_ratio * fitness[chosen] or turn < min_turn_deg:
             continue
         if diff < best_diff:
             best, best_diff = k, diff

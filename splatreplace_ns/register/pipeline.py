@@ -566,13 +566,13 @@ def choose_candidate(
     return chosen, pool
 
 
-def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src_rgb, tpl_rgb, radius,
-                         cfg: RegistrationConfig):
+def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src_c, tpl_c, src_rgb, tpl_rgb,
+                         radius, cfg: RegistrationConfig):
     """``chosen`` or a candidate of ``pool`` (refined tuples, index 6 = T, 7 = fitness) whose level faces agree
-    clearly better in colour (:func:`~splatreplace_ns.register.level_colour.prefer_level_colour`). → (tuple, note)"""
+    clearly better in colour (:func:`~splatreplace_ns.register.level_colour.prefer_level_colour`); ``src_c``,
+    ``tpl_c``, ``src_rgb``, ``tpl_rgb``: the kept Gaussians' centres and colours. → (tuple, note)"""
     if len(pool) < 2:
         return chosen, ""
-    src_c, tpl_c = source.centres()[src_keep], template.centres()[tpl_keep]
     src_n = gaussian_normals(_np(source.quats), _np(source.scales))[src_keep]
     tpl_n = gaussian_normals(_np(template.quats), _np(template.scales))[tpl_keep]
     dist = cfg.icp_max_distance_rel * radius
@@ -583,8 +583,9 @@ def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src
                                  cfg.level_colour_fitness_ratio, cfg.level_colour_margin, cfg.level_colour_min_pairs)
     if better is None:
         return chosen, ""
-    note = (f"level faces chose a turn of {geodesic_deg(pool[better][6][:3, :3], chosen[6][:3, :3]):.0f}° from the colour "
-            f"score's pose (difference {diffs[better][0]:.3f} against {diffs[at][0]:.3f})")
+    turn = geodesic_deg(pool[better][6][:3, :3], chosen[6][:3, :3])
+    note = (f"level faces chose a turn of {turn:.0f}° from the colour score's pose "
+            f"(difference {diffs[better][0]:.3f} against {diffs[at][0]:.3f})")
     return pool[better], note
 
 
@@ -716,8 +717,8 @@ def register_instance(
         chosen = refined[at]
         if cfg.level_colour and at in pool:
             chosen, level_note = _level_colour_choice(
-                chosen, [refined[k] for k in pool], source, template, src_keep, tpl_keep, src_rgb, tpl_rgb, radius,
-                cfg)
+                chosen, [refined[k] for k in pool], source, template, src_keep, tpl_keep, src_c, tpl_c, src_rgb,
+                tpl_rgb, radius, cfg)
         _, score, n_inl, i, j, coarse, T, fit = chosen
     T, polished = _upright_polish(src_c, tpl_c, T, radius, cfg)
     violation = _violation(tpl_c, T, radius, cfg, observed)
