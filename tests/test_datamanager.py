@@ -84,6 +84,37 @@ def test_cpu_datamanager_loads_masks_depth_and_instances(tmp_path):
     assert "transform_matrix" not in instances[1]
 
 
+@pytest.mark.parametrize("depth_zero", [None, "unknown", "far"])
+def test_depth_zero_is_unknown_unless_the_dataset_says_far(tmp_path, depth_zero):
+    """A frame's depth 0 stays 0 (a hole: unsupervised) unless transforms.json says ``"depth_zero": "far"``,
+    where it is the sky, loaded as +inf (inverse depth 0); measured depths are unchanged either way."""
+    meta = write_dataset(tmp_path)
+    if depth_zero is not None:
+        meta["depth_zero"] = depth_zero
+        (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    for i in range(6):  # the top rows of every frame see no surface
+        depth = np.full((H, W), 2500, np.uint16)
+        depth[:5] = 0
+        cv2.imwrite(str(tmp_path / f"depth/{i:04d}.png"), depth)
+    dm = setup_dm(tmp_path)
+    _, batch = dm.next_train(0)
+    scale = dm.train_dataparser_outputs.dataparser_scale
+    assert torch.allclose(batch["depth"][5:], torch.full((H - 5, W, 1), 2.5 * scale), rtol=1e-5)
+    sky = batch["depth"][:5]
+    if depth_zero == "far":
+        assert torch.isinf(sky).all() and (sky > 0).all()
+    else:
+        assert (sky == 0).all()
+
+
+def test_bad_depth_zero_is_named(tmp_path):
+    meta = write_dataset(tmp_path)
+    meta["depth_zero"] = "sky"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetFormatError, match=r"transforms\.json: 'depth_zero' is 'sky'"):
+        setup_dm(tmp_path)
+
+
 def test_normalise_object_pose_composes_similarity():
     pose = np.eye(4)
     pose[:3, 3] = [1.0, 2.0, 3.0]

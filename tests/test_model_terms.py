@@ -36,6 +36,23 @@ def test_inverse_depth_l1_ignores_invalid_and_has_finite_grad():
     assert empty.item() == 0.0
 
 
+def test_inverse_depth_l1_pushes_the_sky_away():
+    """A target of +inf (no surface) asks for inverse depth 0: the loss falls as the rendered depth recedes,
+    its gradient pushes the depth out, and nothing is infinite or NaN, even for a rendered depth of 0."""
+    target = torch.tensor([[[2.0], [float("inf")]]])
+    losses = []
+    for far in (0.0, 1.0, 4.0, 100.0):
+        pred = torch.tensor([[[2.0], [far]]], requires_grad=True)
+        loss = inverse_depth_l1(pred, target)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(pred.grad).all()
+        if far > 0.001:
+            assert pred.grad[0, 1, 0] < 0  # descending the loss moves the sky farther
+        losses.append(loss.item())
+    assert losses == sorted(losses, reverse=True) and losses[-1] < 0.01
+    assert torch.isclose(inverse_depth_l1(torch.tensor([[[2.0], [4.0]]]), target), torch.tensor(0.25 / 2))
+
+
 def test_nearest_downscale_keeps_zeros():
     depth = torch.arange(48.0).reshape(6, 8, 1)
     out = nearest_downscale(depth, 2, 3, 4)

@@ -61,6 +61,7 @@ def test_files_and_format(datasets, name):
     assert meta["camera_model"] in ("PINHOLE", "OPENCV")
     assert (meta["w"], meta["h"]) == res
     assert meta["depth_unit_scale_factor"] == 0.001
+    assert meta["depth_zero"] == "far"  # the scenes have no unknown depth: 0 is a ray that hits nothing
     assert (root / meta["ply_file_path"]).exists()
     assert (root / "contact_sheet.png").exists()
     assert len(meta["frames"]) == n_train + n_test

@@ -2,8 +2,9 @@
 
 Adds to nerfstudio's parser, for the frames of the requested split and in the same order:
 ``instance_mask_filenames`` (16-bit instance masks), the ``instances`` list with ground-truth
-object→world poses moved into the dataparser's normalised frame, and ``depth_unit_scale_factor``
-read from ``transforms.json`` when present there.
+object→world poses moved into the dataparser's normalised frame, ``depth_unit_scale_factor``
+read from ``transforms.json`` when present there, and ``depth_zero_is_far`` (its optional ``depth_zero``:
+``"unknown"`` or ``"far"``).
 """
 
 from __future__ import annotations
@@ -71,7 +72,17 @@ class SplatReplaceDataParser(Nerfstudio):
             meta, data_dir, outputs.image_filenames, transforms_path
         )
         outputs.metadata["instances"] = self._instances(meta, outputs)
+        outputs.metadata["depth_zero_is_far"] = self._depth_zero_is_far(meta, transforms_path)
         return outputs
+
+    @staticmethod
+    def _depth_zero_is_far(meta: Dict, transforms_path: Path) -> bool:
+        """What depth 0 means: ``"unknown"`` (default: a sensor's hole, no supervision there) or ``"far"`` (the
+        ray hits no surface, e.g. the sky: supervised as infinitely far, inverse depth 0)."""
+        value = meta.get("depth_zero", "unknown")
+        if value not in ("unknown", "far"):
+            raise DatasetFormatError(f"{transforms_path}: 'depth_zero' is {value!r}; expected 'unknown' or 'far'")
+        return value == "far"
 
     @staticmethod
     def _instance_mask_filenames(

@@ -43,7 +43,8 @@ def read_instance_mask(path: Path, height: int, width: int, valid_ids: set | Non
 
 
 class SplatReplaceDataset(InputDataset):
-    """InputDataset with ``depth`` ([H, W, 1] metres in the normalised frame) and ``instance_mask``."""
+    """InputDataset with ``depth`` ([H, W, 1] metres in the normalised frame; 0 = unknown, or +inf where the
+    dataset says depth 0 means no surface) and ``instance_mask``."""
 
     exclude_batch_keys_from_device = InputDataset.exclude_batch_keys_from_device + ["instance_mask", "depth"]
 
@@ -51,6 +52,7 @@ class SplatReplaceDataset(InputDataset):
         super().__init__(dataparser_outputs, scale_factor)
         self.depth_filenames = self.metadata.get("depth_filenames")
         self.depth_unit_scale_factor = self.metadata.get("depth_unit_scale_factor", 1e-3)
+        self.depth_zero_is_far = bool(self.metadata.get("depth_zero_is_far", False))
         self.instance_mask_filenames = self.metadata.get("instance_mask_filenames")
         instances = self.metadata.get("instances") or []
         self.instance_ids = {int(inst["id"]) for inst in instances} if instances else None
@@ -64,7 +66,10 @@ class SplatReplaceDataset(InputDataset):
             if not path.exists():
                 raise DatasetFormatError(f"{path}: depth file not found")
             scale = self.depth_unit_scale_factor * self._dataparser_outputs.dataparser_scale
-            out["depth"] = get_depth_image_from_path(filepath=path, height=height, width=width, scale_factor=scale)
+            depth = get_depth_image_from_path(filepath=path, height=height, width=width, scale_factor=scale)
+            if self.depth_zero_is_far:  # no surface (sky): infinitely far, so its inverse depth is supervised as 0
+                depth = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
+            out["depth"] = depth
         if self.instance_mask_filenames is not None:
             out["instance_mask"] = read_instance_mask(
                 Path(self.instance_mask_filenames[idx]), height, width, self.instance_ids

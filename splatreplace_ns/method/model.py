@@ -69,7 +69,8 @@ def inverse_depth_l1(pred: torch.Tensor, target: torch.Tensor, min_depth: float 
 
     Args:
         pred: [H, W, 1] expected depth.
-        target: [H, W, 1] ground-truth z-depth, 0 where unknown.
+        target: [H, W, 1] ground-truth z-depth, 0 where unknown, +inf where there is no surface (the sky:
+            inverse depth 0, which keeps 3DGS from hanging the sky as a wall just behind the scene).
     """
     valid = target > min_depth
     if not bool(valid.any()):
