@@ -66,13 +66,13 @@ class DemoCommand:
     def main(self) -> Dict:
         from splatreplace_ns.bench.template import train_ours_and_baseline
         from splatreplace_ns.eval.figures import side_by_side
-        from splatreplace_ns.sim import make_scene
+        from splatreplace_ns.sim import is_current_scene, make_scene
 
         start = time.perf_counter()
         data = self.data
         if data is None:
             data = self.out / f"{self.preset}_{self.res}"
-            if not (data / "transforms.json").exists():
+            if not is_current_scene(data):
                 CONSOLE.print(f"[bold]Generating the '{self.preset}' scene at {self.res} in {data}")
                 make_scene(self.preset, data, res=self.res, seed=0, n_train=self.n_train, n_test=self.n_test)
         sim_s = time.perf_counter() - start

@@ -243,3 +243,23 @@ def test_unseen_sides_are_shown_by_other_copies(datasets, name, cls):
     per_instance, union = _local_azimuth_gaps(datasets[name], cls)
     assert min(per_instance) > 100.0, per_instance
     assert union < 0.5 * min(per_instance), (union, per_instance)
+
+
+def test_scene_from_an_older_generator_is_made_again(tmp_path):
+    """A cached scene whose transforms.json an older generator wrote (here: without ``depth_zero``, version 1)
+    is no longer current, and the benchmarks' cache writes it again; a current one is reused untouched."""
+    from splatreplace_ns.bench.scenes import cached_scene
+    from splatreplace_ns.sim import is_current_scene
+
+    data = cached_scene("tiny", "32x24", 2, 1, tmp_path)
+    assert is_current_scene(data)
+    meta_path = data / "transforms.json"
+    stamp = meta_path.stat().st_mtime_ns
+    assert cached_scene("tiny", "32x24", 2, 1, tmp_path) == data and meta_path.stat().st_mtime_ns == stamp
+    meta = _meta(meta_path)
+    meta["sim"]["generator_version"] = 1
+    del meta["depth_zero"]
+    meta_path.write_text(json.dumps(meta))
+    assert not is_current_scene(data) and not is_current_scene(tmp_path / "missing")
+    cached_scene("tiny", "32x24", 2, 1, tmp_path)
+    assert is_current_scene(data) and _meta(meta_path)["depth_zero"] == "far"

@@ -6,10 +6,11 @@ from pathlib import Path
 
 
 def cached_scene(preset: str, res: str, n_train: int, n_test: int, root: Path) -> Path:
-    """``root/<preset>_<res>_<n_train>_<n_test>``, generated with seed 0 when it does not exist yet."""
-    from splatreplace_ns.sim import make_scene
+    """``root/<preset>_<res>_<n_train>_<n_test>``, generated with seed 0 when it does not exist yet or an older
+    generator wrote it."""
+    from splatreplace_ns.sim import is_current_scene, make_scene
 
     data = Path(root) / f"{preset}_{res}_{n_train}_{n_test}"
-    if not (data / "transforms.json").exists():
+    if not is_current_scene(data):
         make_scene(preset, data, res=res, seed=0, n_train=n_train, n_test=n_test)
     return data

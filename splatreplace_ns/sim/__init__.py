@@ -17,7 +17,7 @@ See :func:`make_scene`, :data:`PRESETS` and :func:`load_scene_meshes` / :func:`c
 """
 
 from splatreplace_ns.sim.cli import SimCommand
-from splatreplace_ns.sim.generate import make_scene, parse_res
+from splatreplace_ns.sim.generate import is_current_scene, make_scene, parse_res
 from splatreplace_ns.sim.geometry import CLASS_SYMMETRY, CLASSES, class_mesh
 from splatreplace_ns.sim.presets import PRESETS, Effects, Preset
 from splatreplace_ns.sim.scene import load_scene_meshes
@@ -30,6 +30,7 @@ __all__ = [
     "Preset",
     "SimCommand",
     "class_mesh",
+    "is_current_scene",
     "load_scene_meshes",
     "make_scene",
     "parse_res",

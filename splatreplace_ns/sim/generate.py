@@ -173,6 +173,18 @@ def _render_all(
     return results
 
 
+def is_current_scene(out: Path) -> bool:
+    """Whether OUT holds a scene written by this version of the generator (an older one is made again: the
+    files it wrote then may say less than they do now)."""
+    meta = Path(out) / "transforms.json"
+    if not meta.exists():
+        return False
+    try:
+        return json.loads(meta.read_text()).get("sim", {}).get("generator_version") == GENERATOR_VERSION
+    except (json.JSONDecodeError, OSError, AttributeError):
+        return False
+
+
 def _prepare_output(out: Path) -> None:
     """Create OUT and empty sub-folders; refuse to clobber folders this generator did not write."""
     out.mkdir(parents=True, exist_ok=True)
