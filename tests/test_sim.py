@@ -61,7 +61,8 @@ def test_files_and_format(datasets, name):
     assert meta["camera_model"] in ("PINHOLE", "OPENCV")
     assert (meta["w"], meta["h"]) == res
     assert meta["depth_unit_scale_factor"] == 0.001
-    assert meta["depth_zero"] == "far"  # the scenes have no unknown depth: 0 is a ray that hits nothing
+    # depth 0 is a ray that hits nothing: the sky outdoors (supervised as far), the void above an indoor room's walls
+    assert meta.get("depth_zero") == ("far" if PRESETS[name].open_sky else None)
     assert (root / meta["ply_file_path"]).exists()
     assert (root / "contact_sheet.png").exists()
     assert len(meta["frames"]) == n_train + n_test
@@ -246,20 +247,21 @@ def test_unseen_sides_are_shown_by_other_copies(datasets, name, cls):
 
 
 def test_scene_from_an_older_generator_is_made_again(tmp_path):
-    """A cached scene whose transforms.json an older generator wrote (here: without ``depth_zero``, version 1)
-    is no longer current, and the benchmarks' cache writes it again; a current one is reused untouched."""
+    """A cached scene whose transforms.json an older generator wrote (version 1: an open-sky scene without
+    ``depth_zero``) is no longer current, and the benchmarks' cache writes it again; a current one is reused
+    untouched."""
     from splatreplace_ns.bench.scenes import cached_scene
     from splatreplace_ns.sim import is_current_scene
 
-    data = cached_scene("tiny", "32x24", 2, 1, tmp_path)
+    data = cached_scene("temple", "48x36", 8, 1, tmp_path)
     assert is_current_scene(data)
     meta_path = data / "transforms.json"
     stamp = meta_path.stat().st_mtime_ns
-    assert cached_scene("tiny", "32x24", 2, 1, tmp_path) == data and meta_path.stat().st_mtime_ns == stamp
+    assert cached_scene("temple", "48x36", 8, 1, tmp_path) == data and meta_path.stat().st_mtime_ns == stamp
     meta = _meta(meta_path)
     meta["sim"]["generator_version"] = 1
     del meta["depth_zero"]
     meta_path.write_text(json.dumps(meta))
     assert not is_current_scene(data) and not is_current_scene(tmp_path / "missing")
-    cached_scene("tiny", "32x24", 2, 1, tmp_path)
+    cached_scene("temple", "48x36", 8, 1, tmp_path)
     assert is_current_scene(data) and _meta(meta_path)["depth_zero"] == "far"

@@ -35,7 +35,7 @@ from splatreplace_ns.sim.writer import (
     write_u16,
 )
 
-GENERATOR_VERSION = 2  # 2: transforms.json says depth 0 is far (no surface)
+GENERATOR_VERSION = 2  # 2: open-sky scenes' transforms.json says depth 0 is far (the sky)
 _SUBDIRS = ("images", "masks", "depth")
 _STREAM_CAMERAS, _STREAM_POINTS = 1, 2  # stream 0 is the layout (Preset.layout)
 _POINT_VOXEL = 0.015  # metres; SfM-like points are thinned to one per voxel
@@ -300,8 +300,8 @@ def make_scene(
         "w": w,
         "h": h,
         "depth_unit_scale_factor": DEPTH_SCALE,
-        "depth_zero": "far",  # depth 0 marks rays that hit nothing (the sky), not unknown depth
         "ply_file_path": "points3d.ply",
+        **({"depth_zero": "far"} if p.open_sky else {}),  # depth 0 is the sky there, not unknown depth
         "frames": frames,
         "train_filenames": train_names,
         "val_filenames": test_names,
