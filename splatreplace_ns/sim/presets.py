@@ -74,7 +74,8 @@ class Preset:
     """Outdoors: where a ray hits nothing it sees the sky, and transforms.json says ``"depth_zero": "far"`` so
     that the base stage puts the sky far away rather than just behind the scene. Indoor presets leave depth 0
     unknown: their few such pixels are the void above the walls (office, one demo run each: ours 22.85 / 22.92
-    dB full / masked with them supervised as far, 23.47 / 23.39 without; the baseline 23.13 / 23.21 either way)."""
+    dB full / masked with them supervised as far, 23.47 / 23.39 without; the baseline's full PSNR 23.13 and
+    23.21)."""
 
     def layout(self, seed: int = 0) -> Layout:
         """Build the scene and capture paths for a seed (layout jitter only)."""
