@@ -83,6 +83,7 @@ def splat_replace_trainer_config(
             "instance_poses": _adam(1e-4),
             "template_class": _adam(0.0),  # a label carried through densification, never optimised
             "exposure": _adam(1e-3),
+            "sky": _adam(0.02),
             "camera_opt": {
                 "optimizer": FusedAdamOptimizerConfig(lr=1e-4, eps=1e-15),
                 "scheduler": ExponentialDecaySchedulerConfig(

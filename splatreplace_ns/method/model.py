@@ -34,6 +34,7 @@ from splatreplace_ns.eval.metrics import psnr as image_psnr
 from splatreplace_ns.eval.metrics import ssim as image_ssim
 from splatreplace_ns.eval.perceptual import LocalLPIPS
 from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
+from splatreplace_ns.method.sky import pixel_directions, sky_colour, sky_opacity_l1
 from splatreplace_ns.render import rasterize, resolve_backend
 from splatreplace_ns.template.build import InstanceTable
 from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses, offsets_l1
@@ -119,6 +120,14 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Grid cells per template radius of the merge (larger: finer grid, more Gaussians kept)."""
     offset_l1_lambda: float = 0.01
     """Weight of the L1 penalty that keeps per-instance SH offsets small."""
+    sky_background: Literal["auto", "on", "off"] = "auto"
+    """Learn the sky as a background that depends on the viewing direction (``splatreplace_ns.method.sky``)
+    instead of splatfacto's random training background. auto: on when the dataset says depth 0 is the sky
+    (transforms.json ``"depth_zero": "far"``); it needs depth to tell the sky from a surface."""
+    sky_degree: int = 4
+    """Legendre degree of the sky background over the elevation of the ray (0: one colour)."""
+    sky_opacity_lambda: float = 0.1
+    """Weight of the L1 that asks for opacity 0 on sky pixels and 1 on surface pixels (sky background only)."""
     finetune_densify: bool = False
     """Densify and prune template and background Gaussians during fine-tuning (statistics summed over instances).
     Off by default: every Gaussian added to a template is rendered once per instance, which on CPU made
@@ -137,6 +146,13 @@ class SplatReplaceModel(SplatfactoModel):
             device = torch.device(str(self.kwargs.get("device", "cpu")))
             self._uses_gsplat = resolve_backend(self.config.render_backend, device) == "gsplat"
         return self._uses_gsplat
+
+    @property
+    def uses_sky(self) -> bool:
+        """Whether the background is the learned sky (config ``sky_background``; auto follows the dataset)."""
+        if self.config.sky_background == "auto":
+            return bool((self.kwargs.get("metadata") or {}).get("depth_zero_is_far", False))
+        return self.config.sky_background == "on"
 
     def populate_modules(self):
         # Written out rather than calling super(): splatfacto's version calls .cuda() and builds
@@ -182,6 +198,10 @@ class SplatReplaceModel(SplatfactoModel):
         )
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(torch.zeros(0, 6))  # per instance (ω, δt), see template.compose
+        if self.config.sky_degree < 0:
+            raise ValueError(f"sky_degree must be >= 0, got {self.config.sky_degree}")
+        # sky background (used only when uses_sky): Legendre coefficients per RGB channel, a grey sky to start
+        self.sky_coefficients = Parameter(torch.zeros(self.config.sky_degree + 1, 3))
         self.registration: Dict[int, Dict] = {}
         self.finetune_start: Optional[int] = None
         self.base_gaussians = 0  # Gaussians before the templates were built (for export size reports)
@@ -311,6 +331,9 @@ class SplatReplaceModel(SplatfactoModel):
             self.instance_pose_delta = Parameter(torch.zeros_like(state_dict["instance_pose_delta"], device=self.device))
         else:
             state_dict["instance_pose_delta"] = self.instance_pose_delta.detach().clone()
+        if "sky_coefficients" not in state_dict:  # checkpoints from before the sky background: a grey sky
+            state_dict["sky_coefficients"] = torch.zeros_like(self.sky_coefficients)
+        self.sky_coefficients = Parameter(torch.zeros_like(state_dict["sky_coefficients"], device=self.device))
         self.step = 30000
         torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
 
@@ -447,6 +470,7 @@ class SplatReplaceModel(SplatfactoModel):
         if self.config.use_exposure_correction:
             groups["exposure"] = [self.exposure]
         groups["instance_poses"] = [self.instance_pose_delta]
+        groups["sky"] = [self.sky_coefficients]
         return groups
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
@@ -527,7 +551,10 @@ class SplatReplaceModel(SplatfactoModel):
         elif self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # screen-space gradients for densifying the templates
 
-        background = self._get_background_color()
+        if self.uses_sky:  # [H, W, 3]: the sky behind each pixel, in training and at evaluation alike
+            background = sky_colour(self.sky_coefficients, pixel_directions(camera_to_world[0].to(self.device), K, W, H))
+        else:
+            background = self._get_background_color()
         rgb = out.image[..., :3] + (1 - out.alpha) * background
         cam_idx = (camera.metadata or {}).get("cam_idx")
         if self.config.use_exposure_correction and self.training and cam_idx is not None:
@@ -570,6 +597,8 @@ class SplatReplaceModel(SplatfactoModel):
             H, W = outputs["depth"].shape[:2]
             target = nearest_downscale(batch["depth"].to(self.device), self._get_downscale_factor(), H, W)
             loss_dict["depth_loss"] = self.config.depth_lambda * inverse_depth_l1(outputs["depth"], target)
+            if self.uses_sky and self.config.sky_opacity_lambda > 0:
+                loss_dict["sky_opacity"] = self.config.sky_opacity_lambda * sky_opacity_l1(outputs["accumulation"], target)
         return loss_dict
 
     def get_image_metrics_and_images(
