@@ -1,4 +1,4 @@
-"""The learned sky background: ray directions, the harmonic sky colour, the opacity term, and the model's use."""
+"""The learned sky background: ray directions, the sky colour over elevation, the opacity term, the model's use."""
 
 from __future__ import annotations
 

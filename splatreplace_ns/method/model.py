@@ -121,7 +121,7 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     offset_l1_lambda: float = 0.01
     """Weight of the L1 penalty that keeps per-instance SH offsets small."""
     sky_background: Literal["auto", "on", "off"] = "auto"
-    """Learn the sky as a background that depends on the viewing direction (``splatreplace_ns.method.sky``)
+    """Learn the sky as a background that depends on the elevation of each ray (``splatreplace_ns.method.sky``)
     instead of splatfacto's random training background. auto: on when the dataset says depth 0 is the sky
     (transforms.json ``"depth_zero": "far"``); it needs depth to tell the sky from a surface."""
     sky_degree: int = 4

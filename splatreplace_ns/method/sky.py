@@ -1,4 +1,4 @@
-"""The sky as a background that depends only on the viewing direction.
+"""The sky as a background that depends only on the elevation of the viewing ray.
 
 Where a dataset says depth 0 is the sky (``"depth_zero": "far"``), the base stage supervises its inverse depth
 as 0. Gaussians cannot be both infinitely far and opaque, so with splatfacto's random training background the
