@@ -111,8 +111,9 @@ def _sky_pixels(dataset, index):
     return torch.isinf(data["depth"][..., 0]), data["image"][..., :3].float()
 
 
-def test_sky_background_follows_the_dataset(temple_with_sky, tmp_path):
-    """auto: on for a scene whose depth 0 is the sky, off for one without that key (and forced either way)."""
+def test_sky_background_follows_the_dataset(temple_with_sky, tmp_path, capsys):
+    """auto: on for a scene whose depth 0 is the sky, off for one without that key (and forced either way);
+    forced on for frames without depth, the user is told that nothing then tells the sky from a surface."""
     from scenes import write_gaussian_scene
     from splatreplace_ns.method.train import make_trainer_config
 
@@ -122,6 +123,10 @@ def test_sky_background_follows_the_dataset(temple_with_sky, tmp_path):
     config = make_trainer_config(tmp_path / "indoor", tmp_path / "runs", base_iterations=1)
     pipeline = config.pipeline.setup(device="cpu", test_mode="val", world_size=1, local_rank=0)
     assert not pipeline.model.uses_sky
+    assert "no depth" not in capsys.readouterr().out
+    config.pipeline.model.sky_background = "on"
+    pipeline = config.pipeline.setup(device="cpu", test_mode="val", world_size=1, local_rank=0)
+    assert pipeline.model.uses_sky and "the frames carry no depth" in capsys.readouterr().out
     for forced, expected in (("on", True), ("off", False)):
         model.config.sky_background = forced
         assert model.uses_sky == expected

@@ -29,6 +29,7 @@ from nerfstudio.models.splatfacto import (
     random_quat_tensor,
 )
 from nerfstudio.utils.colors import get_color
+from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.eval.metrics import psnr as image_psnr
 from splatreplace_ns.eval.metrics import ssim as image_ssim
@@ -202,6 +203,12 @@ class SplatReplaceModel(SplatfactoModel):
             raise ValueError(f"sky_degree must be >= 0, got {self.config.sky_degree}")
         # sky background (used only when uses_sky): Legendre coefficients per RGB channel, a grey sky to start
         self.sky_coefficients = Parameter(torch.zeros(self.config.sky_degree + 1, 3))
+        if self.config.sky_background == "on" and not (self.kwargs.get("metadata") or {}).get("depth_filenames"):
+            CONSOLE.print(
+                "[yellow]sky-background on, but the frames carry no depth: nothing tells the sky from a surface, "
+                "so surfaces may turn transparent and show the learned sky; give depth maps (and \"depth_zero\": "
+                "\"far\" in transforms.json) or leave sky-background on auto"
+            )
         self.registration: Dict[int, Dict] = {}
         self.finetune_start: Optional[int] = None
         self.base_gaussians = 0  # Gaussians before the templates were built (for export size reports)
