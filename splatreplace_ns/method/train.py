@@ -54,7 +54,7 @@ def run_training(
     after_step: Optional[Callable[[Trainer, int], None]] = None,
     before_train: Optional[Callable[[Trainer], None]] = None,
 ) -> Trainer:
-    """Saves ``config.yml`` like ``ns-train`` does, trains, and returns the trainer.
+    """Saves ``config.yml`` and seeds like ``ns-train`` does, trains, and returns the trainer.
 
     ``before_train(trainer)`` runs once after setup (checkpoint loaded), before the first step: the oracle
     ablations of ``bench template`` swap in ground-truth stages with it.
@@ -64,9 +64,12 @@ def run_training(
     checkpoints with it.
     """
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+    from nerfstudio.scripts.train import _set_random_seed
 
     config.set_timestamp()
     config.save_config()
+    # seeded as ns-train seeds its runs, so a run does not depend on what ran before it in this process
+    _set_random_seed(config.machine.seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     if trainer._start_step > 0:  # resumed: nerfstudio's progress line counts from the loaded step
