@@ -10,8 +10,10 @@ import pytest
 import torch
 
 from splatreplace_ns.bench.masks import boundary_f_score
-from splatreplace_ns.masks.clustering import ClusteringConfig, cluster_gaussians, instance_ids
-from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, lift_pixel, project_points, visible_by_depth
+from splatreplace_ns.masks.clustering import ClusteringConfig, cluster_gaussians, instance_ids, weighted_median
+from splatreplace_ns.masks.lifting import (
+    ClickError, LiftedClick, frames_holding, lift_click, lift_pixel, project_points, visible_by_depth,
+)
 from splatreplace_ns.masks.render import distort_map, grabcut_instance, labels_from_weights
 from splatreplace_ns.masks.writer import BACKUP_SUFFIX, write_dataset_masks
 from splatreplace_ns.register.virtual_cameras import look_at
@@ -139,6 +141,67 @@ def test_floor_found_under_a_sparse_sky():
         a, b = ids == k, truth == k
         assert (a & b).sum() / (a | b).sum() > 0.9, k
     assert cluster_gaussians(all_means, opacities, ClusteringConfig(dense_spacing=0.0)).planes == []
+
+
+def test_weighted_median_counts_each_value_weight_times():
+    rng = np.random.default_rng(0)
+    values = rng.uniform(0, 1, 201)
+    assert weighted_median(values, np.ones(201)) == pytest.approx(np.median(values))
+    assert weighted_median(values, np.zeros(201)) == pytest.approx(np.median(values))
+    weights = rng.integers(0, 5, 201)
+    assert weighted_median(values, weights) == pytest.approx(np.sort(np.repeat(values, weights))[(weights.sum() - 1) // 2])
+    assert weighted_median(np.array([1.0, 2.0, 50.0]), np.array([1, 1, 0])) == 1.0
+
+
+def test_frames_holding_counts_views_in_front_and_inside():
+    viewmats = torch.stack([torch.eye(4, dtype=torch.float64), torch.from_numpy(look_at(np.array([0.0, 0.0, 4.0]), np.zeros(3)))])
+    Ks = torch.stack([K, K])
+    sizes = torch.tensor([[64, 48], [64, 48]])
+    first = torch.eye(4, dtype=torch.float64)
+    points = torch.stack([
+        lift_pixel(32, 24, 2.0, first, K),    # centre of the first view, 2 from the second's camera: both
+        lift_pixel(63, 47, 2.0, first, K),    # the first view's corner pixel: outside the second's image
+        torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64),  # behind the first camera, 5 in front of the second
+        lift_pixel(70, 24, 2.0, first, K),    # right of the first image, and of the second's
+    ])
+    assert frames_holding(points, viewmats, Ks, sizes).tolist() == [2, 1, 1, 0]
+
+
+def pieces_on_a_board_on_a_far_floor(seed: int = 0):
+    """Four slim pieces a piece's width apart on a densely seen board, which runs on as a floor to 12 units
+    away: sparse there, seen by a few views each, and most of the Gaussians."""
+    rng = np.random.default_rng(seed)
+    board = np.c_[rng.uniform(-0.8, 0.8, (8000, 2)), rng.normal(0, 0.002, 8000)]
+    radius, angle = np.sqrt(rng.uniform(1.0, 144.0, 20000)), rng.uniform(0, 2 * np.pi, 20000)
+    far = np.c_[radius * np.cos(angle), radius * np.sin(angle), rng.normal(0, 0.01, 20000)]
+    pieces = []
+    for x in (-0.3, -0.1, 0.1, 0.3):
+        around, height = rng.uniform(0, 2 * np.pi, 700), rng.uniform(0, 0.25, 700)
+        pieces.append(np.c_[x + 0.06 * np.cos(around), 0.06 * np.sin(around), height])
+    means = np.concatenate([board, far, *pieces])
+    truth = np.repeat([0, 0, 1, 2, 3, 4], [8000, 20000, 700, 700, 700, 700])
+    views = np.concatenate([np.full(8000, 40), np.full(20000, 2), np.full(2800, 40)])
+    colours = np.array([[0.5, 0.5, 0.5], [0.9, 0.9, 0.8], [0.1, 0.1, 0.1], [0.9, 0.9, 0.8], [0.1, 0.1, 0.1]])[truth]
+    return means, truth, views, colours
+
+
+def test_length_unit_counts_views_so_a_far_floor_does_not_set_it():
+    """Counted once each, the far floor's sparse Gaussians set a unit eight times the board's, and the pieces'
+    clicks fall "on one object"; counted once per view that sees them, the unit is the board's and each click
+    gets its piece."""
+    means, truth, views, colours = pieces_on_a_board_on_a_far_floor()
+    opacities = np.ones(len(means))
+    cfg = ClusteringConfig()
+    clicks = [lifted(k, [x + 0.06, 0.0, 0.15]) for k, x in enumerate((-0.3, -0.1, 0.1, 0.3))]
+    counted = cluster_gaussians(means, opacities, cfg, views)
+    once = cluster_gaussians(means, opacities, cfg)
+    assert once.spacing > 5 * counted.spacing
+    ids = instance_ids(clicks, means, opacities, colours, counted, cfg)
+    for k in (1, 2, 3, 4):
+        a, b = ids == k, truth == k
+        assert (a & b).sum() / (a | b).sum() > 0.9, k
+    with pytest.raises(ClickError, match="same object"):
+        instance_ids(clicks, means, opacities, colours, once, cfg)
 
 
 def test_plane_through_a_colonnade_is_not_a_support():

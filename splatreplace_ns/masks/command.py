@@ -27,7 +27,9 @@ from typing_extensions import Annotated
 from splatreplace_ns.masks.base import BaseModel, FrameCameras, frame_cameras, load_base, train_base
 from splatreplace_ns.masks.clustering import Clustering, ClusteringConfig, cluster_gaussians, clusters_of_clicks, instance_ids
 from splatreplace_ns.masks.colmap_input import colmap_to_transforms
-from splatreplace_ns.masks.lifting import ClickError, LiftedClick, lift_click, project_points, view_and_intrinsics, visible_by_depth
+from splatreplace_ns.masks.lifting import (
+    ClickError, LiftedClick, frames_holding, lift_click, project_points, view_and_intrinsics, visible_by_depth,
+)
 from splatreplace_ns.masks.onnx_sam import OnnxSam, sam_labels
 from splatreplace_ns.masks.render import BorderConfig, front_to_back_order, labels_from_weights, one_hot_labels, render_instance_masks
 from splatreplace_ns.masks.viewer_clicks import (
@@ -159,11 +161,19 @@ def usable_clicks(
     return positions, lifted, errors
 
 
-def model_clustering(model, cfg: ClusteringConfig) -> Clustering:
-    """Supporting planes and clusters of the model's Gaussian centres."""
-    means = model.means.detach().cpu().double().numpy()
+def model_clustering(model, cfg: ClusteringConfig, frames: Optional[FrameCameras] = None) -> Clustering:
+    """Supporting planes and clusters of the model's Gaussian centres; with ``frames``, the length unit counts
+    each Gaussian once per frame that holds it in view."""
+    means = model.means.detach().cpu()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    return cluster_gaussians(means, opacities, cfg)
+    views = None
+    if frames is not None:
+        cameras = [view_and_intrinsics(frames.cameras[i : i + 1]) for i in range(len(frames.cameras))]
+        views = frames_holding(
+            means.float(), torch.stack([c[0] for c in cameras]).float(), torch.stack([c[1] for c in cameras]).float(),
+            torch.tensor([[c[2], c[3]] for c in cameras]),
+        ).numpy()
+    return cluster_gaussians(means.double().numpy(), opacities, cfg, views)
 
 
 def instance_labels_of_gaussians(
@@ -212,7 +222,7 @@ def click_checker(
     supporting plane, one instance clicked twice); the Gaussians are clustered (unless ``clustering`` is
     given) and the frames rendered once."""
     if clustering is None:
-        clustering = model_clustering(model, cfg.clustering)
+        clustering = model_clustering(model, cfg.clustering, frames)
 
     def check(clicks: List[Click]) -> None:
         lifted = lift_clicks(model, frames, clicks, cfg.min_alpha, renders)
@@ -298,7 +308,7 @@ def make_masks(cfg: MasksCommand) -> Dict:
     frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale)
 
     t0 = time.perf_counter()
-    clustering = model_clustering(model, cfg.clustering)
+    clustering = model_clustering(model, cfg.clustering, frames)
     renders = None
     if clicks is None:
         # the viewer checks each click against these renders and this clustering; the masks use the same

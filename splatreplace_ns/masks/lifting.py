@@ -80,6 +80,26 @@ def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor)
     return torch.stack([u, v], dim=-1), z
 
 
+def frames_holding(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, sizes: torch.Tensor) -> torch.Tensor:
+    """How many views hold each point: in front of the camera and inside its image (occlusion not tested).
+
+    Args:
+        points: [P, 3] world points.
+        viewmats: [F, 4, 4] world→camera (OpenCV).
+        Ks: [F, 3, 3].
+        sizes: [F, 2] image width, height.
+
+    Returns:
+        [P] int64 counts in [0, F].
+    """
+    counts = torch.zeros(len(points), dtype=torch.int64)
+    for viewmat, K, (width, height) in zip(viewmats, Ks, sizes.tolist()):
+        uv, z = project_points(points, viewmat, K)
+        inside = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+        counts += inside.cpu().long()
+    return counts
+
+
 def visible_by_depth(
     points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
     relative_tolerance: float = 0.05, min_alpha: float = 0.5,
