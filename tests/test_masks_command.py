@@ -91,6 +91,20 @@ def test_bad_inputs_leave_transforms_untouched(base_run, tmp_path):
     assert (data / "transforms.json").read_bytes() == before
 
 
+def test_a_base_run_of_another_capture_is_refused_by_name(base_run, tmp_path):
+    """--load-config with a run trained on other frames (here 8 training views instead of 12) is a clear error
+    naming both frame sets, before anything is loaded or written."""
+    _, _, report = base_run
+    scene = tmp_path / "other_scene"
+    make_scene("tiny", scene, n_train=8)
+    data = tmp_path / "other"
+    strip_ground_truth(scene, data)
+    before = (data / "transforms.json").read_bytes()
+    with pytest.raises(ValueError, match=r"that run was trained on .*16 frames of 64x48.*12 frames of 64x48"):
+        make_masks(MasksCommand(data, load_config=Path(report["config"])))
+    assert (data / "transforms.json").read_bytes() == before
+
+
 def test_cli_prints_a_bad_click_as_one_line_and_exits_2(base_run, tmp_path, monkeypatch, capsys):
     from splatreplace_ns.cli import entrypoint
 

@@ -191,7 +191,7 @@ def downstream_run(cfg: BenchMasksConfig, data: Path, scene: Path, name: str) ->
     from splatreplace_ns.method.train import evaluate_test_views, make_trainer_config, run_training
 
     config = make_trainer_config(
-        data, cfg.out_dir / f"masks_{cfg.preset}", cfg.downstream_base_iterations,
+        data, cfg.out_dir / f"masks_{scene.name}", cfg.downstream_base_iterations,
         cfg.downstream_contrastive_iterations, cfg.downstream_finetune_iterations, experiment_name=name,
     )
     config.pipeline.model.num_downscales = 0
@@ -225,7 +225,8 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
 
     torch.set_num_threads(1)  # measured faster than 2 on the shared two-core machines
     scene = _scene(cfg)
-    root = cfg.data_root / f"masks_{cfg.preset}"
+    # one capture folder per scene (preset, resolution, views): runs at two resolutions must not share one
+    root = cfg.data_root / f"masks_{scene.name}"
     rows, base_config, base_s = [], cfg.load_config, None
     first_capture = None
     for backend in cfg.backends:
@@ -233,7 +234,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         strip_ground_truth(scene, capture)
         command = MasksCommand(
             capture, backend=backend, load_config=base_config, base_iterations=cfg.base_iterations,
-            output_dir=cfg.out_dir / f"masks_{cfg.preset}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
+            output_dir=cfg.out_dir / f"masks_{scene.name}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
             border=BorderConfig(method=cfg.border), clustering=cfg.clustering, skip_bad_clicks=cfg.skip_bad_clicks,
         )
         report = make_masks(command)

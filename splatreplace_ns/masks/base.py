@@ -123,13 +123,52 @@ def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: O
     )
 
 
-def load_base(config_path: Path) -> BaseModel:
-    """Loads a saved run (``config.yml`` of ``ns-train splat-replace`` or of an earlier ``masks``)."""
+def frame_signature(transforms_path: Path) -> List[tuple]:
+    """(file name, width, height) of every frame of a ``transforms.json``, in file order."""
+    meta = json.loads(Path(transforms_path).read_text())
+    return [
+        (Path(f["file_path"]).name, f.get("w", meta.get("w")), f.get("h", meta.get("h"))) for f in meta.get("frames", [])
+    ]
+
+
+def check_base_matches(config_path: Path, transforms_path: Path) -> None:
+    """Raises ValueError unless the run of ``config_path`` was trained on the frames of ``transforms_path``
+    (same file names and image sizes): a base model of another capture cannot make its masks (and nerfstudio
+    would stop on the size of the per-image parameters instead).  Nothing is checked when the run's data
+    folder no longer exists."""
+    import yaml
+
+    config = yaml.load(Path(config_path).read_text(), Loader=yaml.Loader)
+    data = getattr(config.pipeline.datamanager, "data", None) or getattr(config, "data", None)
+    if data is None:
+        return
+    data = Path(data)
+    base_transforms = data if data.suffix == ".json" else data / "transforms.json"
+    if not base_transforms.exists():
+        return
+    base, here = frame_signature(base_transforms), frame_signature(transforms_path)
+    if base != here:
+        def describe(frames):
+            sizes = sorted({f"{w}x{h}" for _, w, h in frames})
+            return f"{len(frames)} frames of {', '.join(sizes)}"
+
+        raise ValueError(
+            f"--load-config {config_path}: that run was trained on {base_transforms} ({describe(base)}), which "
+            f"differs from {transforms_path} ({describe(here)}); train the base model on this capture (leave out "
+            "--load-config) or give a run trained on it"
+        )
+
+
+def load_base(config_path: Path, transforms_path: Optional[Path] = None) -> BaseModel:
+    """Loads a saved run (``config.yml`` of ``ns-train splat-replace`` or of an earlier ``masks``); with
+    ``transforms_path``, first checks that the run was trained on those frames (:func:`check_base_matches`)."""
     from nerfstudio.utils.eval_utils import eval_setup
 
     config_path = Path(config_path)
     if not config_path.exists():
         raise FileNotFoundError(f"{config_path}: --load-config file not found")
+    if transforms_path is not None:
+        check_base_matches(config_path, transforms_path)
     _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
     outputs = pipeline.datamanager.train_dataparser_outputs
     pipeline.model.eval()

@@ -301,7 +301,7 @@ def make_masks(cfg: MasksCommand) -> Dict:
             raise ClickError(f"click {click.index} ({click.file_path}): not a frame of {transforms}")
 
     start = time.perf_counter()
-    base: BaseModel = load_base(cfg.load_config) if cfg.load_config else train_base(data, cfg.output_dir, cfg.base_iterations)
+    base: BaseModel = load_base(cfg.load_config, transforms) if cfg.load_config else train_base(data, cfg.output_dir, cfg.base_iterations)
     base_s = time.perf_counter() - start
     model = base.model
     model.eval()
