@@ -95,9 +95,14 @@ def frames_holding(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tenso
     counts = torch.zeros(len(points), dtype=torch.int64)
     for viewmat, K, (width, height) in zip(viewmats, Ks, sizes.tolist()):
         uv, z = project_points(points, viewmat, K)
-        inside = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
-        counts += inside.cpu().long()
+        counts += inside_image(uv, z, width, height).cpu().long()
     return counts
+
+
+def inside_image(uv: torch.Tensor, z: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[P] bool: in front of the camera (z > 0) and within the image, for [P, 2] pixel coordinates ``uv`` and
+    [P] camera z from :func:`project_points`."""
+    return (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
 
 
 def visible_by_depth(
@@ -119,7 +124,7 @@ def visible_by_depth(
     H, W = depth.shape[:2]
     uv, z = project_points(points, viewmat, K)
     col, row = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
-    inside = (z > 1e-6) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+    inside = inside_image(uv, z, W, H)
     col_c, row_c = col.clamp(0, W - 1), row.clamp(0, H - 1)
     surface = depth[row_c, col_c, 0]
     covered = alpha[row_c, col_c, 0] >= min_alpha
