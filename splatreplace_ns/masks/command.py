@@ -177,14 +177,12 @@ def model_clustering(model, cfg: ClusteringConfig, frames: Optional[FrameCameras
 
 
 def instance_labels_of_gaussians(
-    model, lifted: List[LiftedClick], cfg: ClusteringConfig, clustering: Optional[Clustering] = None
+    model, lifted: List[LiftedClick], cfg: ClusteringConfig, clustering: Clustering
 ) -> torch.Tensor:
-    """[N] instance id per Gaussian (click k → id k + 1, 0 = background); ``clustering`` of the model's
-    Gaussians is computed here unless given (the viewer checks every click against one clustering)."""
+    """[N] instance id per Gaussian (click k → id k + 1, 0 = background), from ``clustering`` of the model's
+    Gaussians (:func:`model_clustering`; the viewer checks every click against one clustering)."""
     means = model.means.detach().cpu().double().numpy()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    if clustering is None:
-        clustering = model_clustering(model, cfg)
     return torch.from_numpy(instance_ids(lifted, means, opacities, gaussian_colours(model), clustering, cfg))
 
 
