@@ -129,9 +129,7 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
         return float("nan")
     if not (weights > 0).any():
         return float(np.median(values))
-    order = np.argsort(values, kind="stable")
-    cumulative = np.cumsum(weights[order].astype(np.float64))
-    return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+    return float(np.quantile(values, 0.5, weights=weights.astype(np.float64), method="inverted_cdf"))
 
 
 def neighbourhood_spacing(
