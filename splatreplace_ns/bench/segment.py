@@ -113,10 +113,8 @@ def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[D
 
 
 def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, carve: bool, contrastive: int, probes: Dict[int, str]):
-    from nerfstudio.scripts.train import _set_random_seed
-
     from splatreplace_ns.bench.register import label_gaussians_from_ground_truth
-    from splatreplace_ns.method.train import make_trainer_config
+    from splatreplace_ns.method.train import make_trainer_config, setup_trainer
 
     config = make_trainer_config(data, cfg.out_dir / cfg.preset, cfg.base_iterations, contrastive, experiment_name=name)
     config.pipeline.model.num_downscales = 0
@@ -124,11 +122,7 @@ def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, car
         config.pipeline.model.opacity_l1_lambda = 0.0
         config.pipeline.model.scale_l1_lambda = 0.0
     config.pipeline.segmentation.carve = carve
-    config.set_timestamp()
-    config.save_config()
-    _set_random_seed(config.machine.seed)  # as ns-train does: each run starts from the same random state
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = setup_trainer(config)
     pipeline = trainer.pipeline
     record: Dict = {"time_s": {}}
     marks = {"start": time.perf_counter()}

@@ -49,12 +49,26 @@ def make_trainer_config(
     return config
 
 
+def setup_trainer(config: TrainerConfig) -> Trainer:
+    """What ``ns-train`` does before training: saves ``config.yml``, seeds ``random``, numpy and torch with
+    ``machine.seed`` (so a run does not depend on what ran before it in this process), sets the trainer up
+    (loading a checkpoint when the config names one)."""
+    from nerfstudio.scripts.train import _set_random_seed
+
+    config.set_timestamp()
+    config.save_config()
+    _set_random_seed(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer
+
+
 def run_training(
     config: TrainerConfig,
     after_step: Optional[Callable[[Trainer, int], None]] = None,
     before_train: Optional[Callable[[Trainer], None]] = None,
 ) -> Trainer:
-    """Saves ``config.yml`` and seeds like ``ns-train`` does, trains, and returns the trainer.
+    """Sets up like ``ns-train`` does (:func:`setup_trainer`), trains, and returns the trainer.
 
     ``before_train(trainer)`` runs once after setup (checkpoint loaded), before the first step: the oracle
     ablations of ``bench template`` swap in ground-truth stages with it.
@@ -64,14 +78,8 @@ def run_training(
     checkpoints with it.
     """
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-    from nerfstudio.scripts.train import _set_random_seed
 
-    config.set_timestamp()
-    config.save_config()
-    # seeded as ns-train seeds its runs, so a run does not depend on what ran before it in this process
-    _set_random_seed(config.machine.seed)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = setup_trainer(config)
     if trainer._start_step > 0:  # resumed: nerfstudio's progress line counts from the loaded step
         from nerfstudio.utils import writer
 
