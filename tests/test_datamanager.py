@@ -142,3 +142,49 @@ def test_missing_mask_is_named(tmp_path):
     (tmp_path / "masks/0002.png").unlink()
     with pytest.raises(DatasetFormatError, match=r"masks/0002\.png: instance mask file not found"):
         setup_dm(tmp_path).next_train(0)
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_masks_and_depth_follow_the_images_through_undistortion(tmp_path, model):
+    """A capture with lens distortion (what ns-process-data writes by default): nerfstudio undistorts and crops
+    the cached images; the instance masks and depths must come out on the same pixels. Each image here is a
+    colour code of its mask (red = 60 × id) and depth (green), so the undistorted image says where every id
+    and depth must be."""
+    Wd, Hd = 96, 72
+    write_dataset(tmp_path)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    yy, xx = np.mgrid[0:Hd, 0:Wd]
+    for i, frame in enumerate(meta["frames"]):
+        mask = np.zeros((Hd, Wd), np.uint16)
+        mask[10:40, 8:50] = 1
+        mask[30:66, 55:90] = 2
+        mask[44:60, 20:40] = 3
+        depth_mm = (1000 + 20 * (xx // 12) + 100 * (yy // 18)).astype(np.uint16)  # blocks, so nearest is exact
+        image = np.stack([np.zeros_like(mask), (depth_mm - 1000) // 2, mask * 60], axis=-1).astype(np.uint8)  # BGR
+        cv2.imwrite(str(tmp_path / frame["file_path"]), image)
+        cv2.imwrite(str(tmp_path / frame["instance_mask_path"]), mask)
+        cv2.imwrite(str(tmp_path / frame["depth_file_path"]), depth_mm)
+    meta["instances"].append({"id": 3, "class": "table"})
+    focal = 80.0 if model == "OPENCV" else 60.0
+    meta.update(camera_model=model, w=Wd, h=Hd, fl_x=focal, fl_y=focal, cx=Wd / 2 + 1.5, cy=Hd / 2 - 2.0)
+    meta.update({"k1": -0.2, "k2": 0.05, "p1": 0.004, "p2": -0.003} if model == "OPENCV" else
+                {"k1": -0.3, "k2": 0.05, "k3": 0.0, "k4": 0.0})  # moves pixels by 10 px on average
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    dm = setup_dm(tmp_path)
+    scale = dm.train_dataparser_outputs.dataparser_scale
+    for data in dm.cached_train:
+        image, mask, depth = data["image"].numpy(), data["instance_mask"][..., 0].numpy(), data["depth"][..., 0].numpy()
+        assert mask.shape == depth.shape == image.shape[:2]
+        if model == "OPENCV":
+            assert image.shape[:2] != (Hd, Wd)  # cropped to the valid region: the case that broke before
+        # the linearly interpolated image holds an exact code except on the blocks' edges
+        code = image[..., 0].astype(int)
+        exact = np.isin(code, [0, 60, 120, 180])
+        assert exact.mean() > 0.8
+        assert (mask[exact] * 60 == code[exact]).mean() > 0.995
+        green = image[..., 1].astype(np.float64)
+        flat = (cv2.Laplacian(green.astype(np.float32), cv2.CV_32F) == 0) & (depth > 0)
+        expected = (1000 + 2 * green[flat]) * 1e-3 * scale
+        agree = np.isclose(depth[flat], expected, rtol=1e-3)
+        assert agree.mean() > 0.99, (agree.mean(), depth[flat][~agree][:5], expected[~agree][:5])
+        assert set(np.unique(mask)) <= {0, 1, 2, 3}

@@ -13,6 +13,7 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 
 from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParserConfig
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
+from splatreplace_ns.datamanager.undistort import remap_nearest, undistortion_maps
 from splatreplace_ns.segment.sampling import sample_contrastive_pixels
 
 
@@ -41,7 +42,31 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
     ) -> List[Dict[str, torch.Tensor]]:
         if cache_images_device == "cpu" and not torch.cuda.is_available():
             cache_images_device = "gpu"  # "gpu" means "the model's device", which is the CPU here
-        return super()._load_images(split, cache_images_device)
+        cameras = (self.train_dataset if split == "train" else self.eval_dataset).cameras
+        # nerfstudio undistorts the images in place of these cameras' intrinsics: keep the captured ones
+        K_before = cameras.get_intrinsics_matrices().clone()
+        distortion = None if cameras.distortion_params is None else cameras.distortion_params.clone()
+        cached = super()._load_images(split, cache_images_device)
+        if distortion is not None:
+            self._undistort_masks_and_depth(cached, cameras, K_before, distortion)
+        return cached
+
+    @staticmethod
+    def _undistort_masks_and_depth(cached: List[Dict], cameras: Cameras, K_before: torch.Tensor, distortion: torch.Tensor) -> None:
+        """Warps each cached ``instance_mask`` and ``depth`` as nerfstudio warped its image."""
+        K_after = cameras.get_intrinsics_matrices()
+        for idx, data in enumerate(cached):
+            keys = [key for key in ("instance_mask", "depth") if key in data]
+            if not keys:
+                continue
+            size = (int(data["image"].shape[1]), int(data["image"].shape[0]))
+            maps = undistortion_maps(
+                int(cameras.camera_type[idx].item()), K_before[idx].numpy(), distortion[idx].numpy(), K_after[idx].numpy(), size
+            )
+            if maps is None:
+                continue
+            for key in keys:
+                data[key] = remap_nearest(data[key], maps).to(data[key].device)
 
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
         camera, data = super().next_train(step)
