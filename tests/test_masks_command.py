@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from splatreplace_ns.masks.capture import strip_ground_truth
 from splatreplace_ns.masks.command import MasksCommand, make_masks
@@ -319,3 +320,46 @@ def test_masks_command_with_the_viewer(base_run, tmp_path, monkeypatch):
     assert result["report"]["instances"] == [{"id": k + 1, "class": c["class"]} for k, c in enumerate(gt_clicks)]
     ious = mask_iou(scene, data)
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
+
+
+def test_ns_train_makes_the_masks_of_a_capture_without_them(tmp_path):
+    """A capture with clicks.json but no masks: `ns-train splat-replace` makes the masks from the base model and
+    the same clicks after the base stage, writes them like `splatreplace masks` (backup kept), and the
+    contrastive stage trains on them."""
+    from splatreplace_ns.method.train import make_trainer_config, run_training
+
+    scene, capture = tmp_path / "scene", tmp_path / "capture"
+    make_scene("tiny", scene, n_train=12)
+    strip_ground_truth(scene, capture)
+    seen = {}
+
+    def first_contrastive_step(trainer, step):
+        if step == 300:
+            dm = trainer.pipeline.datamanager
+            seen["has_masks"] = dm.has_instance_masks
+            seen["ids"] = set(torch.unique(torch.cat([d["instance_mask"].reshape(-1) for d in dm.cached_train])).tolist())
+
+    trainer = run_training(make_trainer_config(capture, tmp_path / "runs", 300, 200), after_step=first_contrastive_step)
+    report = trainer.pipeline.masks_report
+    assert [inst["id"] for inst in report["instances"]] == [1, 2, 3] and report["frames"] == 16
+    assert seen == {"has_masks": True, "ids": {0, 1, 2, 3}}
+    meta = json.loads((capture / "transforms.json").read_text())
+    assert meta["instances"] == [{"id": k, "class": "crate"} for k in (1, 2, 3)]
+    assert "instances" not in json.loads((capture / "transforms.json.before-masks").read_text())
+    ious = mask_iou(scene, capture)
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious  # as good as `splatreplace masks` at this budget
+    assert trainer.pipeline.segmentation_report["instances"]
+
+
+def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
+    """No masks and no clicks.json: the run stops at setup, before the base stage, saying how to make them."""
+    from splatreplace_ns.method.train import make_trainer_config, setup_trainer
+
+    scene, capture = tmp_path / "scene", tmp_path / "capture"
+    make_scene("tiny", scene)
+    strip_ground_truth(scene, capture)
+    (capture / "clicks.json").unlink()
+    with pytest.raises(ValueError, match=r"no instance masks .*splatreplace masks .* --viewer"):
+        setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
+    assert not (capture / "masks").exists()
+    setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 0))  # the base stage alone needs no masks

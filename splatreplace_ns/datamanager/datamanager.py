@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type
 
@@ -11,7 +12,7 @@ from nerfstudio.cameras.cameras import Cameras
 
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 
-from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParserConfig
+from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParser, SplatReplaceDataParserConfig
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
 from splatreplace_ns.datamanager.undistort import remap_nearest, undistortion_maps
 from splatreplace_ns.segment.sampling import sample_contrastive_pixels
@@ -44,29 +45,58 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
             cache_images_device = "gpu"  # "gpu" means "the model's device", which is the CPU here
         cameras = (self.train_dataset if split == "train" else self.eval_dataset).cameras
         # nerfstudio undistorts the images in place of these cameras' intrinsics: keep the captured ones
-        K_before = cameras.get_intrinsics_matrices().clone()
-        distortion = None if cameras.distortion_params is None else cameras.distortion_params.clone()
+        captured = CapturedCameras(
+            cameras.get_intrinsics_matrices().clone(),
+            None if cameras.distortion_params is None else cameras.distortion_params.clone(),
+            cameras.width.reshape(-1).clone(), cameras.height.reshape(-1).clone(),
+        )
         cached = super()._load_images(split, cache_images_device)
-        if distortion is not None:
-            self._undistort_masks_and_depth(cached, cameras, K_before, distortion)
+        if not hasattr(self, "captured_cameras"):  # nerfstudio may cache images inside its own __init__
+            self.captured_cameras: Dict[str, CapturedCameras] = {}
+        self.captured_cameras[split] = captured
+        self._undistort(cached, cameras, split, ("instance_mask", "depth"))
         return cached
 
-    @staticmethod
-    def _undistort_masks_and_depth(cached: List[Dict], cameras: Cameras, K_before: torch.Tensor, distortion: torch.Tensor) -> None:
-        """Warps each cached ``instance_mask`` and ``depth`` as nerfstudio warped its image."""
+    def _undistort(self, cached: List[Dict], cameras: Cameras, split: str, keys: Tuple[str, ...]) -> None:
+        """Warps each cached image's per-pixel ``keys`` (read in the captured geometry) as nerfstudio warped it."""
+        captured = self.captured_cameras[split]
+        if captured.distortion is None:
+            return
         K_after = cameras.get_intrinsics_matrices()
         for idx, data in enumerate(cached):
-            keys = [key for key in ("instance_mask", "depth") if key in data]
-            if not keys:
+            keys_here = [key for key in keys if key in data]
+            if not keys_here:
                 continue
             size = (int(data["image"].shape[1]), int(data["image"].shape[0]))
             maps = undistortion_maps(
-                int(cameras.camera_type[idx].item()), K_before[idx].numpy(), distortion[idx].numpy(), K_after[idx].numpy(), size
+                int(cameras.camera_type[idx].item()), captured.K[idx].numpy(), captured.distortion[idx].numpy(),
+                K_after[idx].numpy(), size,
             )
             if maps is None:
                 continue
-            for key in keys:
+            for key in keys_here:
                 data[key] = remap_nearest(data[key], maps).to(data[key].device)
+
+    def reload_instance_masks(self) -> None:
+        """Points the datasets at the masks that ``transforms.json`` now lists (written during this run, after
+        the base stage) and puts them into the images already cached."""
+        transforms = self.dataparser.config.data
+        transforms = transforms if transforms.suffix == ".json" else transforms / "transforms.json"
+        meta = json.loads(transforms.read_text())
+        for split, dataset in (("train", self.train_dataset), ("eval", self.eval_dataset)):
+            outputs = dataset._dataparser_outputs
+            filenames = SplatReplaceDataParser._instance_mask_filenames(meta, transforms.parent, outputs.image_filenames, transforms)
+            instances = SplatReplaceDataParser._instances(meta, outputs)
+            outputs.metadata.update(instance_mask_filenames=filenames, instances=instances)
+            dataset.use_instance_masks(filenames, instances)
+            cached = self.__dict__.get("cached_train" if split == "train" else "cached_eval")
+            if cached is None:  # not cached yet: it reads the masks when it is
+                continue
+            captured = self.captured_cameras[split]
+            for idx, data in enumerate(cached):
+                height, width = int(captured.height[idx]), int(captured.width[idx])
+                data["instance_mask"] = dataset.read_instance_mask(idx, height, width)
+            self._undistort(cached, dataset.cameras, split, ("instance_mask",))
 
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
         camera, data = super().next_train(step)
@@ -134,3 +164,17 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         if config.method == "no_virtual_views":
             cameras = self.training_view_cameras(*config.image_size)
         return register_instances(instances, classes, config, cameras=cameras, observed=observed)
+
+
+@dataclass
+class CapturedCameras:
+    """Intrinsics of a split's captured images, kept before nerfstudio undistorts them in place."""
+
+    K: torch.Tensor
+    """[F, 3, 3]"""
+    distortion: Optional[torch.Tensor]
+    """[F, 6] nerfstudio distortion parameters, or None."""
+    width: torch.Tensor
+    """[F]"""
+    height: torch.Tensor
+    """[F]"""

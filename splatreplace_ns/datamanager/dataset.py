@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict
+from typing import Dict, List
 
 import cv2
 import numpy as np
@@ -71,7 +71,15 @@ class SplatReplaceDataset(InputDataset):
                 depth = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
             out["depth"] = depth
         if self.instance_mask_filenames is not None:
-            out["instance_mask"] = read_instance_mask(
-                Path(self.instance_mask_filenames[idx]), height, width, self.instance_ids
-            )
+            out["instance_mask"] = self.read_instance_mask(idx, height, width)
         return out
+
+    def read_instance_mask(self, idx: int, height: int, width: int) -> torch.Tensor:
+        """[H, W, 1] int32 instance mask of image ``idx``, checked against its size and the listed ids."""
+        return read_instance_mask(Path(self.instance_mask_filenames[idx]), height, width, self.instance_ids)
+
+    def use_instance_masks(self, filenames: List[Path], instances: List[Dict]) -> None:
+        """Masks written after this dataset was made (``ns-train`` making them from the clicks)."""
+        self.metadata.update(instance_mask_filenames=filenames, instances=instances)
+        self.instance_mask_filenames = filenames
+        self.instance_ids = {int(inst["id"]) for inst in instances} if instances else None

@@ -45,6 +45,23 @@ from splatreplace_ns.segment.clicks import Click, load_clicks
 
 
 @dataclass
+class ClickMasksConfig:
+    """How ``ns-train splat-replace`` makes the masks of a capture that has none: after the base stage, from the
+    clicks of ``clicks.json`` and the base model, with the geometric backend of ``splatreplace masks``."""
+
+    clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
+    border: BorderConfig = field(default_factory=BorderConfig)
+    skip_bad_clicks: bool = True
+    """A click that makes no instance is reported and left out (its instance gets no mask), rather than
+    stopping a run whose base stage has already trained."""
+
+    def command(self, data: Path, clicks: Path, min_alpha: float) -> "MasksCommand":
+        """The ``splatreplace masks`` settings these stand for, on the dataset folder ``data``."""
+        return MasksCommand(data, clicks=clicks, clustering=self.clustering, border=self.border, min_alpha=min_alpha,
+                            skip_bad_clicks=self.skip_bad_clicks)
+
+
+@dataclass
 class MasksCommand:
     """Write instance masks for every frame of a capture from one click per instance."""
 
@@ -286,6 +303,59 @@ def clicks_from_viewer(
     return clicks
 
 
+def masks_from_model(
+    model, frames: FrameCameras, clicks: List[Click], cfg: MasksCommand, clustering: Optional[Clustering] = None,
+    renders: Optional[FrameRenders] = None, sam: Optional[OnnxSam] = None,
+) -> Tuple[List[np.ndarray], List[Dict], Dict]:
+    """The instance masks of every frame from a trained model and one click per instance (nothing written).
+
+    Args:
+        model: the trained (base) model, in eval mode.
+        frames: every frame of the capture (:func:`~splatreplace_ns.masks.base.frame_cameras`).
+        clicks: one per instance; ``cfg.skip_bad_clicks`` says whether a click that makes no instance stops.
+        clustering: the model's clustering when already computed (:func:`model_clustering`).
+        renders: the frames' renders when already made (the viewer's).
+        sam: the onnx-sam pair, or None for the geometric backend.
+
+    Returns:
+        one [H, W] uint16 mask per frame (click k → id k + 1), ``[{"id", "class"}]`` of the instances, and a
+        report (``instances``, ``gaussians_per_instance``, ``skipped_clicks``).
+
+    Raises:
+        ClickError: a bad click (naming it), unless skipped.
+    """
+    if clustering is None:
+        clustering = model_clustering(model, cfg.clustering, frames)
+    if cfg.skip_bad_clicks:
+        positions, lifted, skipped = usable_clicks(model, frames, clicks, cfg, clustering, renders)
+        if not positions:
+            raise ClickError("no click makes an instance:\n" + "\n".join(skipped))
+    else:
+        positions, lifted, skipped = list(range(len(clicks))), lift_clicks(model, frames, clicks, cfg.min_alpha, renders), []
+    instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
+    # instance k of the kept clicks carries its click's id (position + 1), whatever was skipped before it
+    click_id = np.array([0] + [p + 1 for p in positions], dtype=np.uint16)
+    masks = []
+    for index, file_path in enumerate(frames.file_paths):
+        camera = frames.cameras[index : index + 1].to(model.device)
+        width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
+        image = read_rgb(Path(cfg.data) / file_path, width, height)
+        if sam is None:
+            mask = render_instance_masks(
+                model, camera, instance_of_gaussian, len(lifted), image, cfg.border, frames.distortion[index]
+            )
+        else:
+            mask = sam_view_labels(model, sam, camera, image, instance_of_gaussian, lifted, cfg.border.min_weight)
+        masks.append(click_id[mask.astype(np.int64)])
+    instances = [{"id": p + 1, "class": clicks[p].cls} for p in positions]
+    report = {
+        "instances": instances,
+        "gaussians_per_instance": {p + 1: int((instance_of_gaussian == k + 1).sum()) for k, p in enumerate(positions)},
+        "skipped_clicks": skipped,
+    }
+    return masks, instances, report
+
+
 def make_masks(cfg: MasksCommand) -> Dict:
     """Everything ``splatreplace masks`` does; returns a report (instances, timings, the base run's config)."""
     data = Path(cfg.data)
@@ -314,34 +384,11 @@ def make_masks(cfg: MasksCommand) -> Dict:
         viewer_start = time.perf_counter()
         clicks = clicks_from_viewer(base, frames, cfg, renders, clustering)
         t0 += time.perf_counter() - viewer_start  # the time spent clicking is not the masks' time
-    if cfg.skip_bad_clicks:
-        positions, lifted, skipped = usable_clicks(model, frames, clicks, cfg, clustering, renders)
-        if not positions:
-            raise ClickError("no click makes an instance:\n" + "\n".join(skipped))
-    else:
-        positions, lifted, skipped = list(range(len(clicks))), lift_clicks(model, frames, clicks, cfg.min_alpha, renders), []
-    instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
-    # instance k of the kept clicks carries its click's id (position + 1), whatever was skipped before it
-    click_id = np.array([0] + [p + 1 for p in positions], dtype=np.uint16)
-    masks = []
-    for index, file_path in enumerate(frames.file_paths):
-        camera = frames.cameras[index : index + 1].to(model.device)
-        width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
-        image = read_rgb(data / file_path, width, height)
-        if sam is None:
-            mask = render_instance_masks(
-                model, camera, instance_of_gaussian, len(lifted), image, cfg.border, frames.distortion[index]
-            )
-        else:
-            mask = sam_view_labels(model, sam, camera, image, instance_of_gaussian, lifted, cfg.border.min_weight)
-        masks.append(click_id[mask.astype(np.int64)])
-    instances = [{"id": p + 1, "class": clicks[p].cls} for p in positions]
+    masks, instances, made = masks_from_model(model, frames, clicks, cfg, clustering, renders, sam)
     write_dataset_masks(data, masks, instances)
     return {
-        "instances": instances,
+        **made,
         "frames": len(masks),
-        "gaussians_per_instance": {p + 1: int((instance_of_gaussian == k + 1).sum()) for k, p in enumerate(positions)},
-        "skipped_clicks": skipped,
         "time_s": {"base": base_s, "masks": time.perf_counter() - t0},
         "config": str(base.config_path),
         "backend": cfg.backend,

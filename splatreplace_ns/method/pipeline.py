@@ -27,6 +27,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
+from splatreplace_ns.masks.command import ClickMasksConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.register.free_space import observed_depth
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
@@ -74,6 +75,9 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     registration and leaves the scene un-replaced."""
     contrastive: ContrastiveLossConfig = field(default_factory=ContrastiveLossConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    masks: ClickMasksConfig = field(default_factory=ClickMasksConfig)
+    """A capture without instance masks gets them from the clicks of clicks.json after the base stage
+    (geometric backend of ``splatreplace masks``, written into the dataset folder)."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     @property
@@ -92,7 +96,10 @@ class SplatReplacePipeline(VanillaPipeline):
         self.segmentation_report: Dict = {}
         self.registration_report: Dict = {}
         self.instance_masks_2d: Optional[torch.Tensor] = None
+        self.masks_report: Dict = {}
         self.selection_controls = InstanceSelectionControls(self)
+        if self.test_mode == "val" and self.config.contrastive_iterations > 0 and not self.datamanager.has_instance_masks:
+            self._check_clicks_for_masks()
 
     def load_pipeline(self, loaded_state: Dict, step: int) -> None:
         super().load_pipeline(loaded_state, step)
@@ -133,16 +140,67 @@ class SplatReplacePipeline(VanillaPipeline):
         return callbacks
 
     def _after_iteration(self, step: int) -> None:
-        last_contrastive = self.config.base_iterations + self.config.contrastive_iterations - 1
-        if self.config.contrastive_iterations > 0 and step == last_contrastive:
+        if self.config.contrastive_iterations <= 0:
+            return
+        if step == self.config.base_iterations - 1 and not self.datamanager.has_instance_masks:
+            self.make_instance_masks()
+        if step == self.config.base_iterations + self.config.contrastive_iterations - 1:
             self.run_segmentation()
+
+    # ------------------------------------------------------------ masks of a capture that has none
+    def transforms_path(self) -> Path:
+        data = Path(self.datamanager.get_datapath())
+        return data if data.suffix == ".json" else data / "transforms.json"
+
+    def _check_clicks_for_masks(self) -> None:
+        """A capture without masks needs clicks.json to make them; say so before the base stage trains."""
+        data = self.transforms_path().parent
+        if not self.clicks_path().exists():
+            raise ValueError(
+                f"{data}: no instance masks (no frame of transforms.json has 'instance_mask_path') and no "
+                f"{self.clicks_path()}. The contrastive stage needs masks: write clicks.json (one click per instance, "
+                '[{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]) and ns-train makes them '
+                f"after the base stage; or click the instances in the viewer with `splatreplace masks {data} --viewer`, "
+                "which writes both; or pass --pipeline.contrastive-iterations 0 to train the base stage only"
+            )
+        CONSOLE.log(f"{data} has no instance masks: they will be made from {self.clicks_path()} after the base stage")
+
+    @torch.no_grad()
+    def make_instance_masks(self) -> Dict:
+        """Masks of every frame from the base model and the clicks (geometric backend of ``splatreplace masks``),
+        written into the dataset folder (original transforms.json kept as transforms.json.before-masks) and
+        loaded into the datamanager, so that the contrastive stage trains on them."""
+        from splatreplace_ns.masks.base import frame_cameras
+        from splatreplace_ns.masks.command import masks_from_model
+        from splatreplace_ns.masks.writer import write_dataset_masks
+
+        start = time.perf_counter()
+        transforms = self.transforms_path()
+        outputs = self.datamanager.train_dataparser_outputs
+        frames = frame_cameras(transforms, outputs.dataparser_transform, outputs.dataparser_scale)
+        command = self.config.masks.command(transforms.parent, self.clicks_path(), self.config.segmentation.min_alpha)
+        was_training = self.model.training
+        self.model.eval()
+        try:
+            masks, instances, report = masks_from_model(self.model, frames, load_clicks(self.clicks_path()), command)
+        finally:
+            self.model.train(was_training)
+        write_dataset_masks(transforms.parent, masks, instances)
+        self.datamanager.reload_instance_masks()
+        for message in report["skipped_clicks"]:
+            CONSOLE.log(f"[bold yellow]masks: skipped {message}")
+        self.masks_report = {**report, "frames": len(masks), "time_s": time.perf_counter() - start}
+        CONSOLE.log(
+            f"[bold]masks: {len(instances)} instances in {len(masks)} frames written to {transforms.parent / 'masks'} "
+            f"({self.masks_report['time_s']:.1f} s)"
+        )
+        return self.masks_report
 
     # ------------------------------------------------------------ segmentation
     def clicks_path(self) -> Path:
         if self.config.segmentation.clicks is not None:
             return Path(self.config.segmentation.clicks)
-        data = Path(self.datamanager.get_datapath())
-        return (data.parent if data.suffix == ".json" else data) / "clicks.json"
+        return self.transforms_path().parent / "clicks.json"
 
     def train_index_of(self, file_path: str) -> int:
         names = [Path(p).name for p in self.datamanager.train_dataset.image_filenames]
