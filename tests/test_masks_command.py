@@ -322,15 +322,19 @@ def test_masks_command_with_the_viewer(base_run, tmp_path, monkeypatch):
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
 
 
-def test_ns_train_makes_the_masks_of_a_capture_without_them(tmp_path):
-    """A capture with clicks.json but no masks: `ns-train splat-replace` makes the masks from the base model and
-    the same clicks after the base stage, writes them like `splatreplace masks` (backup kept), and the
-    contrastive stage trains on them."""
+def test_ns_train_makes_the_masks_of_a_colmap_capture(tmp_path):
+    """A COLMAP model (no transforms.json) with clicks.json and no masks: `ns-train splat-replace` writes its
+    transforms.json, makes the masks from the base model and the same clicks after the base stage, writes them
+    like `splatreplace masks` (backup kept), and the contrastive stage trains on them."""
     from splatreplace_ns.method.train import make_trainer_config, run_training
+    from splatreplace_ns.sim.colmap_export import export_colmap
 
     scene, capture = tmp_path / "scene", tmp_path / "capture"
     make_scene("tiny", scene, n_train=12)
-    strip_ground_truth(scene, capture)
+    export_colmap(scene, capture)
+    strip_ground_truth(scene, tmp_path / "stripped")
+    shutil.copy2(tmp_path / "stripped" / "clicks.json", capture / "clicks.json")
+    assert not (capture / "transforms.json").exists()
     seen = {}
 
     def first_contrastive_step(trainer, step):

@@ -20,6 +20,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.io import load_from_json
+from nerfstudio.utils.rich_utils import CONSOLE
 
 
 class DatasetFormatError(ValueError):
@@ -60,8 +61,17 @@ class SplatReplaceDataParser(Nerfstudio):
 
     def _generate_dataparser_outputs(self, split: str = "train") -> DataparserOutputs:
         transforms_path = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
+        if not transforms_path.exists() and self.config.data.suffix != ".json":
+            from splatreplace_ns.masks.colmap_input import colmap_to_transforms, find_sparse_model
+
+            if find_sparse_model(self.config.data) is not None:  # a COLMAP capture: written once, then reused
+                CONSOLE.log(f"{self.config.data}: no transforms.json; writing it from the COLMAP model")
+                colmap_to_transforms(self.config.data)
         if not transforms_path.exists():
-            raise DatasetFormatError(f"{transforms_path}: file not found (expected a nerfstudio transforms.json)")
+            raise DatasetFormatError(
+                f"{transforms_path}: file not found (expected a nerfstudio transforms.json, or a COLMAP model in "
+                "sparse/0)"
+            )
         meta = load_from_json(transforms_path)
         if "depth_unit_scale_factor" in meta:
             self.config.depth_unit_scale_factor = float(meta["depth_unit_scale_factor"])
