@@ -144,32 +144,37 @@ def test_missing_mask_is_named(tmp_path):
         setup_dm(tmp_path).next_train(0)
 
 
-@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
-def test_masks_and_depth_follow_the_images_through_undistortion(tmp_path, model):
-    """A capture with lens distortion (what ns-process-data writes by default): nerfstudio undistorts and crops
-    the cached images; the instance masks and depths must come out on the same pixels. Each image here is a
-    colour code of its mask (red = 60 × id) and depth (green), so the undistorted image says where every id
-    and depth must be."""
+def write_distorted_capture(root: Path, model: str) -> tuple:
+    """The small dataset with lens distortion (what ns-process-data writes by default), each image a colour code of
+    its mask (red = 60 × id) and depth (green = (depth mm − 1000) / 2). Returns (width, height, one mask)."""
     Wd, Hd = 96, 72
-    write_dataset(tmp_path)
-    meta = json.loads((tmp_path / "transforms.json").read_text())
+    write_dataset(root)
+    meta = json.loads((root / "transforms.json").read_text())
     yy, xx = np.mgrid[0:Hd, 0:Wd]
-    for i, frame in enumerate(meta["frames"]):
-        mask = np.zeros((Hd, Wd), np.uint16)
-        mask[10:40, 8:50] = 1
-        mask[30:66, 55:90] = 2
-        mask[44:60, 20:40] = 3
-        depth_mm = (1000 + 20 * (xx // 12) + 100 * (yy // 18)).astype(np.uint16)  # blocks, so nearest is exact
-        image = np.stack([np.zeros_like(mask), (depth_mm - 1000) // 2, mask * 60], axis=-1).astype(np.uint8)  # BGR
-        cv2.imwrite(str(tmp_path / frame["file_path"]), image)
-        cv2.imwrite(str(tmp_path / frame["instance_mask_path"]), mask)
-        cv2.imwrite(str(tmp_path / frame["depth_file_path"]), depth_mm)
+    mask = np.zeros((Hd, Wd), np.uint16)
+    mask[10:40, 8:50] = 1
+    mask[30:66, 55:90] = 2
+    mask[44:60, 20:40] = 3
+    depth_mm = (1000 + 20 * (xx // 12) + 100 * (yy // 18)).astype(np.uint16)  # blocks, so nearest is exact
+    image = np.stack([np.zeros_like(mask), (depth_mm - 1000) // 2, mask * 60], axis=-1).astype(np.uint8)  # BGR
+    for frame in meta["frames"]:
+        cv2.imwrite(str(root / frame["file_path"]), image)
+        cv2.imwrite(str(root / frame["instance_mask_path"]), mask)
+        cv2.imwrite(str(root / frame["depth_file_path"]), depth_mm)
     meta["instances"].append({"id": 3, "class": "table"})
     focal = 80.0 if model == "OPENCV" else 60.0
     meta.update(camera_model=model, w=Wd, h=Hd, fl_x=focal, fl_y=focal, cx=Wd / 2 + 1.5, cy=Hd / 2 - 2.0)
-    meta.update({"k1": -0.2, "k2": 0.05, "p1": 0.004, "p2": -0.003} if model == "OPENCV" else
+    meta.update({"k1": -0.4, "k2": 0.12, "p1": 0.004, "p2": -0.003} if model == "OPENCV" else
                 {"k1": -0.3, "k2": 0.05, "k3": 0.0, "k4": 0.0})  # moves pixels by 10 px on average
-    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return Wd, Hd, mask
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_masks_and_depth_follow_the_images_through_undistortion(tmp_path, model):
+    """nerfstudio undistorts (and crops) the cached images of a distorted capture; the instance masks and depths
+    must come out on the same pixels, which the undistorted colour codes say."""
+    Wd, Hd, _ = write_distorted_capture(tmp_path, model)
     dm = setup_dm(tmp_path)
     scale = dm.train_dataparser_outputs.dataparser_scale
     for data in dm.cached_train:
@@ -183,8 +188,54 @@ def test_masks_and_depth_follow_the_images_through_undistortion(tmp_path, model)
         assert exact.mean() > 0.8
         assert (mask[exact] * 60 == code[exact]).mean() > 0.995
         green = image[..., 1].astype(np.float64)
-        flat = (cv2.Laplacian(green.astype(np.float32), cv2.CV_32F) == 0) & (depth > 0)
+        kernel = np.ones((3, 3), np.uint8)
+        flat = (cv2.dilate(image[..., 1], kernel) == cv2.erode(image[..., 1], kernel)) & (depth > 0)  # constant around
         expected = (1000 + 2 * green[flat]) * 1e-3 * scale
         agree = np.isclose(depth[flat], expected, rtol=1e-3)
         assert agree.mean() > 0.99, (agree.mean(), depth[flat][~agree][:5], expected[~agree][:5])
         assert set(np.unique(mask)) <= {0, 1, 2, 3}
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_a_click_on_the_image_file_lands_on_the_same_object_in_the_undistorted_image(tmp_path, model):
+    """clicks.json gives pixels of the image files; the segmentation stage reads features of the undistorted,
+    cropped training image. Every pixel well inside an object of the file maps onto that object there."""
+    _, _, mask = write_distorted_capture(tmp_path, model)
+    dm = setup_dm(tmp_path)
+    code = dm.cached_train[0]["image"].numpy()[..., 0].astype(int)
+    inner = cv2.erode((mask > 0).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0  # 3 px from every edge
+    hits, inside, shifts = 0, 0, []
+    for row, col in zip(*np.nonzero(inner)):
+        u, v = dm.train_pixel(0, (float(col), float(row)))
+        shifts.append(np.hypot(u - col, v - row))
+        r, c = int(np.floor(v + 0.5)), int(np.floor(u + 0.5))
+        if 0 <= r < code.shape[0] and 0 <= c < code.shape[1]:  # a fisheye's far corners are cropped away
+            inside += 1
+            hits += code[r, c] == 60 * mask[row, col]
+    assert inside > 0.9 * len(shifts) and hits >= 0.995 * inside, (hits, inside)
+    assert np.mean(shifts) > 2.0  # the same pixel index would often be another place of the object, or another object
+
+
+def test_pixels_map_between_a_distorted_image_and_a_pinhole_one():
+    """Oracle: OpenCV's own projection of 3D points with and without the lens."""
+    from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, undistorted_to_captured_pixel
+
+    rng = np.random.default_rng(0)
+    K = np.array([[80.0, 0, 49.5], [0, 80.0, 34.0], [0, 0, 1]])
+    K_new = np.array([[70.0, 0, 44.0], [0, 70.0, 30.0], [0, 0, 1]])
+    cv = lambda M: M - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])  # noqa: E731  pixel centres at integers
+    points = np.c_[rng.uniform(-0.5, 0.5, (20, 2)), np.ones(20)]
+    distortion = np.array([-0.2, 0.05, 0.01, 0.0, 0.004, -0.003])  # nerfstudio order k1 k2 k3 k4 p1 p2
+    coeffs = np.array([-0.2, 0.05, 0.004, -0.003, 0.01])
+    captured = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cv(K), coeffs)[0].reshape(-1, 2)
+    pinhole = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cv(K_new), None)[0].reshape(-1, 2)
+    for xy, expected in zip(captured, pinhole):
+        assert np.allclose(captured_to_undistorted_pixel(tuple(xy), 1, K, distortion, K_new), expected, atol=1e-3)
+        assert np.allclose(undistorted_to_captured_pixel(tuple(expected), 1, K_new, distortion, K), xy, atol=1e-3)
+    fisheye = np.array([-0.3, 0.05, 0.0, 0.0, 0.0, 0.0])
+    captured = cv2.fisheye.projectPoints(points[:, None], np.zeros(3), np.zeros(3), cv(K), fisheye[:4])[0].reshape(-1, 2)
+    for xy, expected in zip(captured, pinhole):
+        assert np.allclose(captured_to_undistorted_pixel(tuple(xy), 2, K, fisheye, K_new), expected, atol=1e-3)
+        assert np.allclose(undistorted_to_captured_pixel(tuple(expected), 2, K_new, fisheye, K), xy, atol=1e-3)
+    # no distortion: only the intrinsics change
+    assert np.allclose(captured_to_undistorted_pixel((10.0, 20.0), 1, K, np.zeros(6), K), (10.0, 20.0))

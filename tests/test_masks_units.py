@@ -460,3 +460,34 @@ def test_colmap_export_and_import_round_trip(tmp_path):
     for a, b in zip(ours["frames"], sim["frames"]):
         assert np.allclose(a["transform_matrix"], b["transform_matrix"], atol=1e-9)
     assert (capture / ours["ply_file_path"]).exists()
+
+
+def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path):
+    """clicks.json gives pixels of the image files; the base model renders pinhole images. A 3D point's pixel in
+    the distorted file (OpenCV's projection with the lens) is mapped to the render's pixel, and lifting it at the
+    point's depth gives the point back; the map inverts (the viewer writes its clicks through the inverse)."""
+    from splatreplace_ns.masks.base import frame_cameras
+    from splatreplace_ns.masks.lifting import lift_pixel, view_and_intrinsics
+
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.3, -0.2, 4.0]
+    c2w[:3, :3] = np.diag([1.0, -1.0, -1.0])  # OpenGL camera looking down -z
+    meta = {"camera_model": "OPENCV", "fl_x": 80.0, "fl_y": 82.0, "cx": 49.5, "cy": 34.0, "w": 96, "h": 72,
+            "k1": -0.35, "k2": 0.1, "p1": 0.004, "p2": -0.003,
+            "frames": [{"file_path": "images/0000.png", "transform_matrix": c2w.tolist()}]}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    frames = frame_cameras(tmp_path / "transforms.json", torch.eye(4)[:3], 1.0)
+    viewmat, K, _, _ = view_and_intrinsics(frames.cameras[0:1])
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-1.2, 1.8, 30), rng.uniform(-1.4, 1.0, 30), rng.uniform(-0.5, 0.5, 30)]
+    camera = points @ viewmat[:3, :3].double().numpy().T + viewmat[:3, 3].double().numpy()
+    K_cv = K.double().numpy() - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    coeffs = np.array([-0.35, 0.1, 0.004, -0.003])
+    pixels = cv2.projectPoints(camera, np.zeros(3), np.zeros(3), K_cv, coeffs)[0].reshape(-1, 2)
+    errors, naive = [], []
+    for point, z, xy in zip(points, camera[:, 2], pixels):
+        u, v = frames.pinhole_pixel(0, tuple(xy))
+        errors.append(np.linalg.norm(lift_pixel(u, v, z, viewmat.double(), K.double()).numpy() - point))
+        naive.append(np.linalg.norm(lift_pixel(xy[0], xy[1], z, viewmat.double(), K.double()).numpy() - point))
+        assert np.allclose(frames.captured_pixel(0, (u, v)), xy, atol=0.01)
+    assert max(errors) < 1e-4 and max(naive) > 0.05, (max(errors), max(naive))

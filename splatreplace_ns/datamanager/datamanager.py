@@ -14,7 +14,7 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 
 from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParser, SplatReplaceDataParserConfig
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
-from splatreplace_ns.datamanager.undistort import remap_nearest, undistortion_maps
+from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, remap_nearest, undistortion_maps
 from splatreplace_ns.segment.sampling import sample_contrastive_pixels
 
 
@@ -76,6 +76,18 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
                 continue
             for key in keys_here:
                 data[key] = remap_nearest(data[key], maps).to(data[key].device)
+
+    def train_pixel(self, index: int, xy: Tuple[float, float]) -> Tuple[float, float]:
+        """A pixel of training image ``index`` as stored (a click of clicks.json) → the same ray's pixel in the
+        image as cached, which nerfstudio undistorts and crops when the camera has distortion."""
+        captured = self.captured_cameras["train"] if self.cached_train is not None else None
+        if captured is None or captured.distortion is None or not bool(captured.distortion[index].any()):
+            return float(xy[0]), float(xy[1])
+        cameras = self.train_dataset.cameras
+        return captured_to_undistorted_pixel(
+            xy, int(cameras.camera_type[index].item()), captured.K[index].numpy(), captured.distortion[index].numpy(),
+            cameras.get_intrinsics_matrices()[index].numpy(),
+        )
 
     def reload_instance_masks(self) -> None:
         """Points the datasets at the masks that ``transforms.json`` now lists (written during this run, after

@@ -49,9 +49,7 @@ def undistortion_maps(
         return None
     K0, K1 = opencv_intrinsics(K_before), opencv_intrinsics(K_after)
     if camera_type == CameraType.PERSPECTIVE.value:
-        k1, k2, k3, k4, p1, p2 = distortion
-        coeffs = np.array([k1, k2, p1, p2, k3, k4, 0.0, 0.0])  # OpenCV's order, as nerfstudio reorders them
-        return cv2.initUndistortRectifyMap(K0, coeffs, None, K1, size_after, cv2.CV_32FC1)
+        return cv2.initUndistortRectifyMap(K0, _opencv_coefficients(distortion), None, K1, size_after, cv2.CV_32FC1)
     if camera_type == CameraType.FISHEYE.value:
         return cv2.fisheye.initUndistortRectifyMap(K0, distortion[:4], np.eye(3), K1, size_after, cv2.CV_32FC1)
     raise ValueError(
@@ -73,3 +71,54 @@ def remap_nearest(values: torch.Tensor, maps: Tuple[np.ndarray, np.ndarray]) -> 
         array = array.astype(np.float32)
     out = cv2.remap(array, maps[0], maps[1], interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return torch.from_numpy(out.astype(dtype))[..., None]
+
+
+def _opencv_coefficients(distortion: np.ndarray) -> np.ndarray:
+    """nerfstudio (k1, k2, k3, k4, p1, p2) → OpenCV's (k1, k2, p1, p2, k3, k4, 0, 0), as nerfstudio reorders them."""
+    k1, k2, k3, k4, p1, p2 = np.asarray(distortion, dtype=np.float64)
+    return np.array([k1, k2, p1, p2, k3, k4, 0.0, 0.0])
+
+
+def captured_to_undistorted_pixel(
+    xy: Tuple[float, float], camera_type: int, K_captured: np.ndarray, distortion: np.ndarray, K_target: np.ndarray
+) -> Tuple[float, float]:
+    """A pixel of the captured (distorted) image → the same ray's pixel in an undistorted pinhole image.
+
+    Pixels are (column, row) indices as clicks give them (the pixel's centre), in both images.
+
+    Args:
+        camera_type: nerfstudio ``CameraType`` value.
+        K_captured: [3, 3] intrinsics of the captured image; distortion: [6] nerfstudio parameters.
+        K_target: [3, 3] intrinsics of the pinhole image (the captured ones for a render of the base model,
+            nerfstudio's new ones for its undistorted and cropped training image).
+    """
+    distortion = np.asarray(distortion, dtype=np.float64)
+    point = np.array([[xy]], dtype=np.float64)
+    K0, K1 = opencv_intrinsics(K_captured), opencv_intrinsics(K_target)
+    if not np.any(distortion):
+        out = cv2.undistortPoints(point, K0, None, P=K1)
+    elif camera_type == CameraType.PERSPECTIVE.value:
+        out = cv2.undistortPoints(point, K0, _opencv_coefficients(distortion), P=K1)
+    elif camera_type == CameraType.FISHEYE.value:
+        out = cv2.fisheye.undistortPoints(point, K0, distortion[:4], P=K1)
+    else:
+        raise ValueError(f"camera type {CameraType(camera_type).name} with distortion: clicks cannot be mapped")
+    return float(out[0, 0, 0]), float(out[0, 0, 1])
+
+
+def undistorted_to_captured_pixel(
+    xy: Tuple[float, float], camera_type: int, K_pinhole: np.ndarray, distortion: np.ndarray, K_captured: np.ndarray
+) -> Tuple[float, float]:
+    """The inverse of :func:`captured_to_undistorted_pixel`: a pixel of a pinhole image → the captured image's."""
+    distortion = np.asarray(distortion, dtype=np.float64)
+    K1, K0 = opencv_intrinsics(K_pinhole), opencv_intrinsics(K_captured)
+    normalised = np.linalg.solve(K1, np.array([xy[0], xy[1], 1.0]))
+    ray = np.array([[[normalised[0], normalised[1], 1.0]]])
+    if camera_type == CameraType.FISHEYE.value and np.any(distortion):
+        out = cv2.fisheye.distortPoints(ray[:, :, :2].copy(), K0, distortion[:4])
+    elif camera_type == CameraType.PERSPECTIVE.value or not np.any(distortion):
+        coeffs = _opencv_coefficients(distortion) if np.any(distortion) else None
+        out, _ = cv2.projectPoints(ray.reshape(1, 3), np.zeros(3), np.zeros(3), K0, coeffs)
+    else:
+        raise ValueError(f"camera type {CameraType(camera_type).name} with distortion: clicks cannot be mapped")
+    return float(out.reshape(-1)[0]), float(out.reshape(-1)[1])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -17,6 +17,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from splatreplace_ns.datamanager.dataparser import DatasetFormatError
+from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, undistorted_to_captured_pixel
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
@@ -31,6 +32,21 @@ class FrameCameras:
     """[F] pinhole cameras (OpenGL camera→world, normalised frame)."""
     distortion: np.ndarray
     """[F, 6] OpenCV distortion (k1, k2, k3, k4, p1, p2); zeros for pinhole frames."""
+
+    def pinhole_pixel(self, frame: int, xy: Tuple[float, float]) -> Tuple[float, float]:
+        """A pixel of the frame's image file (a click) → the same ray's pixel in the pinhole render of its camera."""
+        if not np.any(self.distortion[frame]):
+            return float(xy[0]), float(xy[1])
+        K = self.cameras.get_intrinsics_matrices()[frame].numpy()
+        return captured_to_undistorted_pixel(xy, CameraType.PERSPECTIVE.value, K, self.distortion[frame], K)
+
+    def captured_pixel(self, frame: int, xy: Tuple[float, float]) -> Tuple[float, float]:
+        """The inverse of :meth:`pinhole_pixel`, rounded to 1/100 pixel."""
+        if not np.any(self.distortion[frame]):
+            return float(xy[0]), float(xy[1])
+        K = self.cameras.get_intrinsics_matrices()[frame].numpy()
+        u, v = undistorted_to_captured_pixel(xy, CameraType.PERSPECTIVE.value, K, self.distortion[frame], K)
+        return round(u, 2), round(v, 2)
 
     def index_of(self, file_path: str, source: str) -> int:
         """Frame index of a file path (compared by file name, as the dataparser pairs masks)."""

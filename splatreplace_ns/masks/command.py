@@ -153,7 +153,8 @@ def lift_clicks(
             camera = frames.cameras[frame : frame + 1].to(model.device)
             _, alpha, depth = model.render_features(camera, ones)
             viewmat, K, _, _ = view_and_intrinsics(camera)
-        lifted.append(lift_click(click.index, frame, click.xy, click.cls, source, depth.cpu(), alpha.cpu(), viewmat.cpu(), K.cpu(), min_alpha))
+        xy = frames.pinhole_pixel(frame, click.xy)  # the click is a pixel of the (possibly distorted) image file
+        lifted.append(lift_click(click.index, frame, xy, click.cls, source, depth.cpu(), alpha.cpu(), viewmat.cpu(), K.cpu(), min_alpha))
     return lifted
 
 
@@ -261,7 +262,10 @@ def mask_click_controls(
     def to_click(origin, direction, cls: str, index: int) -> Click:
         source = f"viewer click {index + 1}"
         point = surface_point_on_ray(model, origin, direction, focal, cfg.min_alpha, source)
-        return pixel_click_for_point(point, direction, renders, frames.file_paths, cls, index, cfg.min_alpha, source)
+        click = pixel_click_for_point(point, direction, renders, frames.file_paths, cls, index, cfg.min_alpha, source)
+        # written as a pixel of the image file, as a person clicking it there would give it
+        xy = frames.captured_pixel(frames.index_of(click.file_path, source), click.xy)
+        return Click(click.index, click.file_path, xy, click.cls)
 
     return MaskClickControls(to_click, click_checker(model, frames, renders, cfg, clustering))
 

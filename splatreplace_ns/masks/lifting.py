@@ -15,6 +15,8 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import get_viewmat
 
+from splatreplace_ns.segment.clicks import pixel_index
+
 
 class ClickError(ValueError):
     """A click that cannot become an instance; the message names the click."""
@@ -146,9 +148,10 @@ def lift_click(
     """
     H, W = depth.shape[:2]
     u, v = xy
-    if not (0 <= u < W and 0 <= v < H):
+    pixel = pixel_index(u, v, W, H)
+    if pixel is None:
         raise ClickError(f"{source}: pixel {xy} is outside the {W}x{H} image")
-    row, col = int(v), int(u)
+    row, col = pixel
     if float(alpha[row, col, 0]) < min_alpha or not bool(torch.isfinite(depth[row, col, 0])):
         raise ClickError(f"{source}: nothing opaque is rendered at this pixel (empty space or sky); click on an object")
     point = lift_pixel(u, v, float(depth[row, col, 0]), viewmat.double(), K.double()).float()

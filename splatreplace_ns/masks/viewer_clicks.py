@@ -156,6 +156,12 @@ def pixel_click_for_point(
     return Click(index, str(file_paths[frame]), (float(col), float(row)), cls)
 
 
+def _pixel_coordinate(value: float):
+    """A pixel index as an int; a pixel of a distorted image (mapped from the pinhole render) to 1/100 pixel."""
+    value = round(float(value), 2)
+    return int(value) if value == int(value) else value
+
+
 def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
     """Writes ``[{"file_path", "xy", "class"}, ...]`` atomically; an existing file is kept beside it as
     ``clicks.json.before-viewer``. Returns that backup's path, or None."""
@@ -164,7 +170,8 @@ def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
     if path.exists():
         backup = path.with_name(path.name + ".before-viewer")
         shutil.copyfile(path, backup)
-    entries = [{"file_path": c.file_path, "xy": [int(c.xy[0]), int(c.xy[1])], "class": c.cls} for c in clicks]
+    entries = [{"file_path": c.file_path, "xy": [_pixel_coordinate(c.xy[0]), _pixel_coordinate(c.xy[1])], "class": c.cls}
+               for c in clicks]
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(entries, indent=2) + "\n")
     os.replace(tmp, path)

@@ -244,7 +244,8 @@ class SplatReplacePipeline(VanillaPipeline):
         source = f"click {click.index} ({click.file_path} at {click.xy})"
         index = self.train_index_of(click.file_path)
         features, alpha, _ = self.model.render_features(self.train_camera(index))
-        query = query_at_pixel(features, alpha, click.xy[0], click.xy[1], source, self.config.segmentation.min_alpha)
+        u, v = self.datamanager.train_pixel(index, click.xy)  # the training image may be undistorted and cropped
+        query = query_at_pixel(features, alpha, u, v, source, self.config.segmentation.min_alpha)
         instance = self.selection.add(query, click.cls, source)
         CONSOLE.log(f"instance {instance.id} ({instance.cls}): {instance.num_gaussians} Gaussians from {source}")
 

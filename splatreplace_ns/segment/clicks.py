@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 
 @dataclass(frozen=True)
@@ -18,6 +19,15 @@ class Click:
     """Pixel (u, v) = (column, row)."""
     cls: str
     """Class of the clicked instance."""
+
+
+def pixel_index(u: float, v: float, width: int, height: int) -> Optional[Tuple[int, int]]:
+    """(row, column) of the pixel whose centre is nearest to (u, v) = (column, row), or None outside the image.
+    Clicks are pixel indices; a click mapped through a lens's undistortion lands between them."""
+    col, row = math.floor(u + 0.5), math.floor(v + 0.5)
+    if not (0 <= col < width and 0 <= row < height):
+        return None
+    return row, col
 
 
 def load_clicks(path: Path) -> List[Click]:

@@ -11,6 +11,7 @@ from typing import Callable, Dict, List, Optional
 
 import torch
 
+from splatreplace_ns.segment.clicks import pixel_index
 from splatreplace_ns.segment.select import feature_distance_to_queries, select_gaussians
 
 
@@ -111,9 +112,10 @@ def query_at_pixel(
         SelectionError when the pixel is outside the image or nothing was rendered there.
     """
     H, W = features.shape[:2]
-    if not (0 <= u < W and 0 <= v < H):
+    pixel = pixel_index(u, v, W, H)
+    if pixel is None:
         raise SelectionError(f"{source}: pixel ({u}, {v}) is outside the {W}x{H} image")
-    row, col = int(v), int(u)
+    row, col = pixel
     if float(alpha[row, col, 0]) < min_alpha:
         raise SelectionError(f"{source}: nothing is rendered at pixel ({u}, {v}) (alpha {float(alpha[row, col, 0]):.2f})")
     return features[row, col]
