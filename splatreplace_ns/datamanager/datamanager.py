@@ -80,8 +80,9 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
     def train_pixel(self, index: int, xy: Tuple[float, float]) -> Tuple[float, float]:
         """A pixel of training image ``index`` as stored (a click of clicks.json) → the same ray's pixel in the
         image as cached, which nerfstudio undistorts and crops when the camera has distortion."""
-        captured = self.captured_cameras["train"] if self.cached_train is not None else None
-        if captured is None or captured.distortion is None or not bool(captured.distortion[index].any()):
+        _ = self.cached_train  # caching is where nerfstudio undistorts, and where the captured cameras are kept
+        captured = self.captured_cameras["train"]
+        if captured.distortion is None or not bool(captured.distortion[index].any()):
             return float(xy[0]), float(xy[1])
         cameras = self.train_dataset.cameras
         return captured_to_undistorted_pixel(

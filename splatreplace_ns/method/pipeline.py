@@ -1,6 +1,7 @@
 """The stage schedule of ``ns-train splat-replace``, in one place.
 
-Steps ``[0, base)`` train the base 3DGS* model; steps ``[base, base + contrastive)`` train the
+Steps ``[0, base)`` train the base 3DGS* model (a capture without instance masks gets them at the end of this
+stage, from ``clicks.json`` and the base model); steps ``[base, base + contrastive)`` train the
 per-Gaussian contrastive features with the geometry frozen; right after the last contrastive step
 the instances are segmented from one click each (``clicks.json`` or the viewer), leftover
 background Gaussians are removed by space carving (paper §4.1), every instance is registered to its
