@@ -356,12 +356,17 @@ def test_ns_train_makes_the_masks_of_a_colmap_capture(tmp_path):
 
 
 def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
-    """No masks and no clicks.json: the run stops at setup, before the base stage, saying how to make them."""
+    """No masks and no clicks.json (or a click on no training image): the run stops at setup, before the base
+    stage, saying how to make them (or which click is wrong)."""
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
 
     scene, capture = tmp_path / "scene", tmp_path / "capture"
     make_scene("tiny", scene)
     strip_ground_truth(scene, capture)
+    clicks = json.loads((capture / "clicks.json").read_text())
+    (capture / "clicks.json").write_text(json.dumps(clicks[:1] + [{**clicks[1], "file_path": "images/9999.png"}]))
+    with pytest.raises(ValueError, match=r"click 1 \(images/9999.png\) is not a training image"):
+        setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
     (capture / "clicks.json").unlink()
     with pytest.raises(ValueError, match=r"no instance masks .*splatreplace masks .* --viewer"):
         setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))

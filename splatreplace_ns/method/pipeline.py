@@ -164,6 +164,15 @@ class SplatReplacePipeline(VanillaPipeline):
                 f"after the base stage; or click the instances in the viewer with `splatreplace masks {data} --viewer`, "
                 "which writes both; or pass --pipeline.contrastive-iterations 0 to train the base stage only"
             )
+        # a click that names no frame would otherwise stop the run only after the base stage
+        names = {Path(p).name for p in self.datamanager.train_dataset.image_filenames}
+        for click in load_clicks(self.clicks_path()):
+            if Path(click.file_path).name not in names:
+                raise ValueError(
+                    f"{self.clicks_path()}: click {click.index} ({click.file_path}) is not a training image (without "
+                    "train_filenames in transforms.json nerfstudio holds out every tenth image for evaluation); "
+                    "click the instance in another image"
+                )
         CONSOLE.log(f"{data} has no instance masks: they will be made from {self.clicks_path()} after the base stage")
 
     @torch.no_grad()
