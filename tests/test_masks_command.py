@@ -356,8 +356,8 @@ def test_ns_train_makes_the_masks_of_a_colmap_capture(tmp_path):
 
 
 def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
-    """No masks and no clicks.json (or a click on no training image): the run stops at setup, before the base
-    stage, saying how to make them (or which click is wrong)."""
+    """No masks and no clicks.json, a click on no training image, or cameras the masks cannot be rendered for:
+    the run stops at setup, before the base stage, saying how to make them (or what is wrong)."""
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
 
     scene, capture = tmp_path / "scene", tmp_path / "capture"
@@ -372,3 +372,8 @@ def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
         setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
     assert not (capture / "masks").exists()
     setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 0))  # the base stage alone needs no masks
+    (capture / "clicks.json").write_text(json.dumps(clicks))
+    meta = json.loads((capture / "transforms.json").read_text())
+    (capture / "transforms.json").write_text(json.dumps({**meta, "camera_model": "OPENCV_FISHEYE", "k1": 0.01}))
+    with pytest.raises(ValueError, match=r"OPENCV_FISHEYE.* not supported for mask rendering"):
+        setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))

@@ -164,7 +164,12 @@ class SplatReplacePipeline(VanillaPipeline):
                 f"after the base stage; or click the instances in the viewer with `splatreplace masks {data} --viewer`, "
                 "which writes both; or pass --pipeline.contrastive-iterations 0 to train the base stage only"
             )
-        # a click that names no frame would otherwise stop the run only after the base stage
+        # what would otherwise stop the run only after the base stage: a click on no training image, cameras that
+        # the masks cannot be rendered for (fisheye)
+        from splatreplace_ns.masks.base import frame_cameras
+
+        outputs = self.datamanager.train_dataparser_outputs
+        frame_cameras(self.transforms_path(), outputs.dataparser_transform, outputs.dataparser_scale)
         names = {Path(p).name for p in self.datamanager.train_dataset.image_filenames}
         for click in load_clicks(self.clicks_path()):
             if Path(click.file_path).name not in names:
