@@ -133,7 +133,8 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         if "instance_mask" not in batch:
             raise ValueError(
                 "the contrastive stage needs instance masks (frames[].instance_mask_path in transforms.json); "
-                "add them, or set --pipeline.contrastive-iterations 0 to train the base stage only"
+                "ns-train splat-replace makes them from clicks.json after the base stage, `splatreplace masks DATA` "
+                "makes them on its own, or set --pipeline.contrastive-iterations 0 to train the base stage only"
             )
         return sample_contrastive_pixels(
             batch["instance_mask"][..., 0],

@@ -59,7 +59,7 @@ def click_gt_ids(pipeline, clicks_path: Path) -> Dict[int, int]:
     The entry's ``"id"`` when given (the simulator writes it), else the ground-truth mask value under the
     clicked pixel of its training view (0 when the click is on ground-truth background).
     """
-    from splatreplace_ns.segment.clicks import load_clicks
+    from splatreplace_ns.segment.clicks import load_clicks, pixel_index
 
     raw = json.loads(Path(clicks_path).read_text())
     train = pipeline.datamanager.train_dataset
@@ -70,7 +70,9 @@ def click_gt_ids(pipeline, clicks_path: Path) -> Dict[int, int]:
             continue
         mask = train.get_data(pipeline.train_index_of(click.file_path), image_type="uint8")["instance_mask"]
         H, W = mask.shape[:2]
-        row, col = min(max(int(click.xy[1]), 0), H - 1), min(max(int(click.xy[0]), 0), W - 1)
+        # the pixel the segmentation stage reads for this click (nearest centre), kept inside the image
+        u, v = min(max(click.xy[0], 0.0), W - 1.0), min(max(click.xy[1], 0.0), H - 1.0)
+        row, col = pixel_index(u, v, W, H)
         ids[click.index] = int(mask[row, col, 0])
     return ids
 
@@ -98,7 +100,7 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
         :func:`segmentation_scores` plus ``labels`` ([N] per-Gaussian labels of the replayed selection),
         ``failures`` (messages of the rejected clicks) and ``pred_to_gt``.
     """
-    from splatreplace_ns.segment.clicks import load_clicks
+    from splatreplace_ns.segment.clicks import load_clicks, pixel_index
     from splatreplace_ns.segment.instances import SelectionError
     from splatreplace_ns.segment.select import masks_from_rendered_features
 
