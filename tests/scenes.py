@@ -119,3 +119,70 @@ def fire_viewer_click(server, origin: torch.Tensor, direction: torch.Tensor) -> 
         ray_direction=tuple(direction.tolist()), screen_pos=((0.5, 0.5),),
     ))
     assert server.scene._scene_pointer_cb is None, "the click callback must be removed after one click"
+
+
+def pixel_ray(camera, u: float, v: float):
+    """(origin [3], unit direction [3]) of the ray through pixel (u, v) of a nerfstudio camera (OpenGL c2w)."""
+    c2w = camera.camera_to_worlds.reshape(3, 4)
+    ray = torch.tensor([(u + 0.5 - float(camera.cx)) / float(camera.fx), -(v + 0.5 - float(camera.cy)) / float(camera.fy), -1.0])
+    return c2w[:, 3], c2w[:, :3] @ (ray / ray.norm())
+
+
+def press_viewer_button(button, timeout_s: float = 60.0) -> None:
+    """Presses a viewer button as the browser does: through the hook nerfstudio's viewer installed on it, which
+    takes the trainer's lock. Raises TimeoutError when it does not return (the lock is never let go)."""
+    import threading
+
+    worker = threading.Thread(target=button.cb_hook, args=(button,), daemon=True)
+    worker.start()
+    worker.join(timeout=timeout_s)
+    if worker.is_alive():
+        raise TimeoutError(f"'{button.name}' did not return: the training thread keeps the viewer's lock")
+
+
+def train_with_viewer(config, user, release_events=()):
+    """``ns-train`` with nerfstudio's viewer on (its own port, quits when training ends), while ``user(trainer,
+    result)`` acts in another thread as a person at the viewer would. An exception there is kept in
+    ``result["error"]`` and ``release_events(trainer)`` are then set, so that training goes on (and fails)
+    rather than waiting forever. Returns (trainer, result)."""
+    import threading
+
+    from splatreplace_ns.method.train import run_training
+
+    config.vis = "viewer"
+    config.viewer.websocket_host = "127.0.0.1"
+    config.viewer.websocket_port = free_port()
+    config.viewer.quit_on_train_completion = True
+    result = {}
+
+    def act(trainer) -> None:
+        try:
+            user(trainer, result)
+        except BaseException as exc:  # surfaced by the caller
+            result["error"] = exc
+            for event in release_events(trainer) if release_events else ():
+                event.set()
+
+    def start(trainer) -> None:
+        threading.Thread(target=act, args=(trainer,), daemon=True).start()
+
+    return run_training(config, before_train=start), result
+
+
+def wait_until(condition, timeout_s: float = 600.0, what: str = "condition") -> None:
+    """Polls ``condition()`` every 0.2 s; AssertionError naming ``what`` after ``timeout_s``."""
+    import time
+
+    deadline = time.time() + timeout_s
+    while not condition():
+        if time.time() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.2)
+
+
+def lock_is_free(lock, timeout_s: float = 30.0) -> bool:
+    """Whether another thread can take ``lock`` within ``timeout_s`` (it is given back at once)."""
+    if not lock.acquire(timeout=timeout_s):
+        return False
+    lock.release()
+    return True

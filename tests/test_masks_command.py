@@ -16,7 +16,7 @@ from splatreplace_ns.masks.command import MasksCommand, make_masks
 from splatreplace_ns.masks.lifting import ClickError
 from splatreplace_ns.masks.onnx_sam import OnnxModelError
 from splatreplace_ns.sim import make_scene
-from scenes import fire_viewer_click, free_port
+from scenes import fire_viewer_click, free_port, lock_is_free, pixel_ray, press_viewer_button, train_with_viewer, wait_until
 
 
 def mask_iou(scene, capture) -> list:
@@ -377,3 +377,48 @@ def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
     (capture / "transforms.json").write_text(json.dumps({**meta, "camera_model": "OPENCV_FISHEYE", "k1": 0.01}))
     with pytest.raises(ValueError, match=r"OPENCV_FISHEYE.* not supported for mask rendering"):
         setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
+
+
+def test_ns_train_takes_the_clicks_for_the_masks_in_its_viewer(tmp_path):
+    """A capture with neither masks nor clicks.json, trained with nerfstudio's viewer on: when the base stage
+    ends, training waits without the trainer's lock (so the viewer renders and its buttons run); clicks fired
+    through viser and buttons pressed through the hooks nerfstudio installed (which take that lock) make the
+    masks; the clicks are written to clicks.json and select the instances without a second wait."""
+    from splatreplace_ns.method.train import make_trainer_config
+
+    scene, capture = tmp_path / "scene", tmp_path / "capture"
+    make_scene("tiny", scene, n_train=12)
+    strip_ground_truth(scene, capture)
+    gt_clicks = json.loads((capture / "clicks.json").read_text())
+    (capture / "clicks.json").unlink()
+
+    def user(trainer, result) -> None:
+        pipeline = trainer.pipeline
+        controls = pipeline.mask_click_controls
+        wait_until(lambda: controls.connected, what="clicking to open at the end of the base stage")
+        result["lock_free_while_waiting"] = lock_is_free(trainer.train_lock)
+        for gt in gt_clicks:
+            camera = pipeline.datamanager.train_dataset.cameras[pipeline.train_index_of(gt["file_path"])]
+            controls.class_name.value = gt["class"]
+            press_viewer_button(controls.arm_button)
+            fire_viewer_click(controls.viewer_control.viser_server, *pixel_ray(camera, *gt["xy"]))
+        result["status_after_clicks"] = controls.status.value
+        press_viewer_button(controls.confirm_button)
+        # the segmentation stage takes the written clicks.json: it must not wait in the viewer again
+        wait_until(lambda: pipeline.segmentation_report or "Select instances" in pipeline.selection_controls.status.value,
+                   what="the segmentation stage")
+        assert pipeline.segmentation_report, "the segmentation stage waited for viewer clicks a second time"
+
+    trainer, result = train_with_viewer(
+        make_trainer_config(capture, tmp_path / "runs", 300, 100), user,
+        lambda t: [t.pipeline.mask_click_controls._confirmed, t.pipeline.selection_controls._confirmed],
+    )
+    assert "error" not in result, result["error"]
+    assert result["lock_free_while_waiting"]
+    written = json.loads((capture / "clicks.json").read_text())
+    assert [c["class"] for c in written] == [c["class"] for c in gt_clicks], result["status_after_clicks"]
+    report = trainer.pipeline.masks_report
+    assert [inst["id"] for inst in report["instances"]] == [1, 2, 3] and report["frames"] == 16
+    ious = mask_iou(scene, capture)
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
+    assert len(trainer.pipeline.segmentation_report["instances"]) == 3

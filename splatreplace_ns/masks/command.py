@@ -120,8 +120,8 @@ def _clicks(cfg: MasksCommand) -> List[Click]:
     if not path.exists():
         raise FileNotFoundError(
             f"{path}: no clicks. `splatreplace masks` needs clicks.json with one click per instance "
-            '([{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]); clicking in the viewer '
-            "is available in `ns-train splat-replace`, not here"
+            '([{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]), or --viewer to click the '
+            "instances in nerfstudio's viewer on the base model"
         )
     return load_clicks(path)
 
@@ -247,12 +247,12 @@ def click_checker(
     return check
 
 
-def mask_click_controls(
+def mask_click_functions(
     model, frames: FrameCameras, cfg: MasksCommand, renders: Optional[FrameRenders] = None,
     clustering: Optional[Clustering] = None,
-) -> MaskClickControls:
-    """The viewer controls, wired to the base model: a click ray → its surface point → a pixel click in the
-    frame that sees it best, checked against the clicks made so far. ``renders`` and ``clustering`` are
+) -> Tuple[Callable, Callable[[List[Click]], None]]:
+    """What the viewer controls do, on the base model: a click ray → its surface point → a pixel click in the
+    frame that sees it best; and the check of the clicks made so far. ``renders`` and ``clustering`` are
     computed here unless given; the masks are then made from the same ones, so a click accepted in the
     viewer is a click the masks accept."""
     if renders is None:
@@ -267,7 +267,16 @@ def mask_click_controls(
         xy = frames.captured_pixel(frames.index_of(click.file_path, source), click.xy)
         return Click(click.index, click.file_path, xy, click.cls)
 
-    return MaskClickControls(to_click, click_checker(model, frames, renders, cfg, clustering))
+    return to_click, click_checker(model, frames, renders, cfg, clustering)
+
+
+def mask_click_controls(
+    model, frames: FrameCameras, cfg: MasksCommand, renders: Optional[FrameRenders] = None,
+    clustering: Optional[Clustering] = None,
+) -> MaskClickControls:
+    """The viewer controls of ``splatreplace masks --viewer``, connected to the base model
+    (:func:`mask_click_functions`)."""
+    return MaskClickControls(*mask_click_functions(model, frames, cfg, renders, clustering))
 
 
 def clicks_from_viewer(
@@ -292,6 +301,7 @@ def clicks_from_viewer(
         log_filename=Path(base.config_path).parent / "viewer_log_filename.txt",
         datapath=Path(cfg.data), pipeline=pipeline, train_lock=threading.Lock(),
     )
+    controls.render_lock = viewer.train_lock  # a click renders the model: not while the viewer does
     viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed")
     viewer.update_scene(step=0)
     for line in viewer.viewer_info:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Tuple
@@ -179,23 +180,49 @@ def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
 
 
 class MaskClickControls(ClickControls):
-    """Viewer GUI of ``splatreplace masks --viewer``.
+    """Viewer GUI of ``splatreplace masks --viewer``, and of ``ns-train splat-replace`` on a capture without
+    masks or clicks.json (there the controls exist from the start, so that the viewer finds them, and are
+    connected to the base model when its stage ends).
 
     Args:
         to_click: (origin, direction, class, index) → the pixel click for a viewer ray; raises ClickError.
         validate: checks the whole list of clicks (e.g. two clicks on one instance); raises ClickError.
+        Both None: not connected yet; a click only says when clicking opens.
+        closed_status: what the status line says until :meth:`connect`.
     """
 
     def __init__(
         self,
-        to_click: Callable[[Sequence[float], Sequence[float], str, int], Click],
-        validate: Callable[[List[Click]], None],
+        to_click: Optional[Callable[[Sequence[float], Sequence[float], str, int], Click]] = None,
+        validate: Optional[Callable[[List[Click]], None]] = None,
+        closed_status: str = "clicking opens when the base model is trained",
     ):
+        connected = to_click is not None and validate is not None
         super().__init__("Click an instance", "Undo last click", "Write masks", "Clicks", "Status",
-                         "press 'Click an instance', then click it")
+                         "press 'Click an instance', then click it" if connected else closed_status)
+        self._closed_status = closed_status
         self._to_click = to_click
         self._validate = validate
         self.clicks: List[Click] = []
+
+    @property
+    def connected(self) -> bool:
+        return self._to_click is not None and self._validate is not None
+
+    def connect(
+        self,
+        to_click: Callable[[Sequence[float], Sequence[float], str, int], Click],
+        validate: Callable[[List[Click]], None],
+    ) -> None:
+        """Opens clicking, on the trained base model (see :func:`~splatreplace_ns.masks.command.mask_click_functions`)."""
+        self._to_click, self._validate = to_click, validate
+        self._say("press 'Click an instance', then click it; 'Write masks' when every instance has one")
+
+    def arm_click(self) -> None:
+        if not self.connected:
+            self._say(self._closed_status)
+            return
+        super().arm_click()
 
     def _refresh(self) -> None:
         self.listing.value = "; ".join(
@@ -204,6 +231,9 @@ class MaskClickControls(ClickControls):
 
     def on_click(self, click: ViewerClick) -> Optional[Click]:
         """Adds the clicked instance; a bad click only changes the status message."""
+        if not self.connected:
+            self._say(self._closed_status)
+            return None
         cls = self.class_name.value or "object"
         try:
             new = self._to_click(click.origin, click.direction, cls, len(self.clicks))
@@ -222,13 +252,16 @@ class MaskClickControls(ClickControls):
         self._say(f"removed instance {len(self.clicks) + 1}" if removed else "nothing to undo")
 
     def confirm(self) -> None:
+        if not self.connected:
+            self._say(self._closed_status)
+            return
         if not self.clicks:
             self._say("click at least one instance before writing the masks")
             return
         self._say(f"writing the masks of {len(self.clicks)} instances")
         self._confirmed.set()
 
-    def wait_for_confirm(self, poll_s: float = 0.2) -> List[Click]:
-        """Blocks until "Write masks" is pressed; returns the clicks."""
-        self._wait(poll_s)
+    def wait_for_confirm(self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None) -> List[Click]:
+        """Blocks until "Write masks" is pressed; returns the clicks (``held_lock``: see ``ClickControls._wait``)."""
+        self._wait(poll_s, held_lock)
         return list(self.clicks)

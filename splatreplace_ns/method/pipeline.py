@@ -1,7 +1,8 @@
 """The stage schedule of ``ns-train splat-replace``, in one place.
 
 Steps ``[0, base)`` train the base 3DGS* model (a capture without instance masks gets them at the end of this
-stage, from ``clicks.json`` and the base model); steps ``[base, base + contrastive)`` train the
+stage, from the base model and one click per instance: ``clicks.json``, or clicks made in the viewer then,
+which are written to ``clicks.json``); steps ``[base, base + contrastive)`` train the
 per-Gaussian contrastive features with the geometry frozen; right after the last contrastive step
 the instances are segmented from one click each (``clicks.json`` or the viewer), leftover
 background Gaussians are removed by space carving (paper §4.1), every instance is registered to its
@@ -49,7 +50,9 @@ class SegmentationConfig:
     clicks: Optional[Path] = None
     """clicks.json with one click per instance (default: clicks.json beside transforms.json)."""
     interactive: Literal["auto", "always", "never"] = "auto"
-    """auto: wait for clicks in the viewer only when there is no clicks.json and the viewer runs."""
+    """auto: wait for clicks in the viewer only when there is no clicks.json and the viewer runs (a capture
+    without masks: at the end of the base stage, and those clicks make the masks and select the instances;
+    otherwise at the end of the contrastive stage). never: a capture without masks then needs clicks.json."""
     carve: bool = True
     """Remove leftover background Gaussians by space carving."""
     depth_tolerance: float = 0.02
@@ -99,6 +102,9 @@ class SplatReplacePipeline(VanillaPipeline):
         self.instance_masks_2d: Optional[torch.Tensor] = None
         self.masks_report: Dict = {}
         self.selection_controls = InstanceSelectionControls(self)
+        self._train_lock = None  # the trainer's; held by the training thread through each step and its callbacks
+        self._mask_clicks_from_viewer = False
+        self._in_training_callback = False
         if self.test_mode == "val" and self.config.contrastive_iterations > 0 and not self.datamanager.has_instance_masks:
             self._check_clicks_for_masks()
 
@@ -136,6 +142,13 @@ class SplatReplacePipeline(VanillaPipeline):
         return {}, losses, {}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        # the trainer sets the viewer up before asking for the callbacks: whether it runs is known here
+        self._train_lock = getattr(training_callback_attributes.trainer, "train_lock", None)
+        for controls in (self.selection_controls, getattr(self, "mask_click_controls", None)):
+            if controls is not None:
+                controls.render_lock = self._train_lock
+        if self._mask_clicks_from_viewer and not self.selection_controls.viewer_running:
+            raise ValueError(self._no_clicks_message() + " (the viewer is off in this run: --vis viewer turns it on)")
         callbacks = super().get_training_callbacks(training_callback_attributes)
         callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration))
         return callbacks
@@ -143,33 +156,64 @@ class SplatReplacePipeline(VanillaPipeline):
     def _after_iteration(self, step: int) -> None:
         if self.config.contrastive_iterations <= 0:
             return
-        if step == self.config.base_iterations - 1 and not self.datamanager.has_instance_masks:
-            self.make_instance_masks()
-        if step == self.config.base_iterations + self.config.contrastive_iterations - 1:
-            self.run_segmentation()
+        self._in_training_callback = True  # the trainer runs its callbacks under its train_lock
+        try:
+            if step == self.config.base_iterations - 1 and not self.datamanager.has_instance_masks:
+                if self._mask_clicks_from_viewer and not self.clicks_path().exists():
+                    self.make_instance_masks(**self.mask_clicks_from_viewer())
+                else:
+                    self.make_instance_masks()
+            if step == self.config.base_iterations + self.config.contrastive_iterations - 1:
+                self.run_segmentation()
+        finally:
+            self._in_training_callback = False
+
+    @property
+    def _held_train_lock(self):
+        """The trainer's train_lock when this thread holds it (inside a training callback), else None: a wait for
+        viewer clicks lets go of it meanwhile (``ClickControls._wait``)."""
+        return self._train_lock if self._in_training_callback else None
 
     # ------------------------------------------------------------ masks of a capture that has none
     def transforms_path(self) -> Path:
         data = Path(self.datamanager.get_datapath())
         return data if data.suffix == ".json" else data / "transforms.json"
 
-    def _check_clicks_for_masks(self) -> None:
-        """A capture without masks needs clicks.json to make them; say so before the base stage trains."""
+    def _no_clicks_message(self) -> str:
         data = self.transforms_path().parent
-        if not self.clicks_path().exists():
-            raise ValueError(
-                f"{data}: no instance masks (no frame of transforms.json has 'instance_mask_path') and no "
-                f"{self.clicks_path()}. The contrastive stage needs masks: write clicks.json (one click per instance, "
-                '[{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]) and ns-train makes them '
-                f"after the base stage; or click the instances in the viewer with `splatreplace masks {data} --viewer`, "
-                "which writes both; or pass --pipeline.contrastive-iterations 0 to train the base stage only"
-            )
-        # what would otherwise stop the run only after the base stage: a click on no training image, cameras that
-        # the masks cannot be rendered for (fisheye)
-        from splatreplace_ns.masks.base import frame_cameras
+        return (
+            f"{data}: no instance masks (no frame of transforms.json has 'instance_mask_path') and no "
+            f"{self.clicks_path()}. The contrastive stage needs masks: write clicks.json (one click per instance, "
+            '[{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]) and ns-train makes them '
+            "after the base stage; or train with the viewer on and click the instances there when the base stage "
+            f"ends; or click them with `splatreplace masks {data} --viewer`, which writes both; or pass "
+            "--pipeline.contrastive-iterations 0 to train the base stage only"
+        )
 
+    def _check_clicks_for_masks(self) -> None:
+        """A capture without masks needs clicks to make them (clicks.json, or the viewer when the base stage
+        ends); say so before the base stage trains."""
+        from splatreplace_ns.masks.base import frame_cameras
+        from splatreplace_ns.masks.viewer_clicks import MaskClickControls
+
+        data = self.transforms_path().parent
+        # cameras the masks cannot be rendered for (fisheye) would otherwise stop the run after the base stage
         outputs = self.datamanager.train_dataparser_outputs
         frame_cameras(self.transforms_path(), outputs.dataparser_transform, outputs.dataparser_scale)
+        if not self.clicks_path().exists():
+            if self.config.segmentation.interactive == "never":
+                raise ValueError(self._no_clicks_message())
+            # whether the viewer runs is known only once the trainer sets it up (get_training_callbacks); the
+            # controls must exist before, for the viewer to find them
+            self._mask_clicks_from_viewer = True
+            self.mask_click_controls = MaskClickControls(
+                closed_status=f"opens when the base stage ends (step {self.config.base_iterations})"
+            )
+            CONSOLE.log(
+                f"{data} has no instance masks and no clicks.json: when the base stage ends, training waits for one "
+                "click per instance in the viewer ('Click an instance', then 'Write masks')"
+            )
+            return
         names = {Path(p).name for p in self.datamanager.train_dataset.image_filenames}
         for click in load_clicks(self.clicks_path()):
             if Path(click.file_path).name not in names:
@@ -180,24 +224,58 @@ class SplatReplacePipeline(VanillaPipeline):
                 )
         CONSOLE.log(f"{data} has no instance masks: they will be made from {self.clicks_path()} after the base stage")
 
+    def _mask_inputs(self):
+        """The frames of the capture and the masks' options (the pipeline's ``masks`` config)."""
+        from splatreplace_ns.masks.base import frame_cameras
+
+        transforms = self.transforms_path()
+        outputs = self.datamanager.train_dataparser_outputs
+        frames = frame_cameras(transforms, outputs.dataparser_transform, outputs.dataparser_scale)
+        return frames, self.config.masks.command(transforms.parent, self.clicks_path(), self.config.segmentation.min_alpha)
+
     @torch.no_grad()
-    def make_instance_masks(self) -> Dict:
+    def mask_clicks_from_viewer(self) -> Dict:
+        """Waits (training paused, the viewer live) for one click per instance on the base model, checked as
+        ``splatreplace masks --viewer`` checks them, and writes them to clicks.json, which then also selects
+        the instances at the end of the contrastive stage. Returns the renders and clustering the clicks were
+        checked against, for :meth:`make_instance_masks`."""
+        from splatreplace_ns.masks.command import mask_click_functions, model_clustering
+        from splatreplace_ns.masks.viewer_clicks import render_frames, write_clicks_json
+
+        frames, command = self._mask_inputs()
+        was_training = self.model.training
+        self.model.eval()
+        try:
+            renders = render_frames(self.model, frames)
+            clustering = model_clustering(self.model, command.clustering, frames)
+            controls = self.mask_click_controls
+            controls.connect(*mask_click_functions(self.model, frames, command, renders, clustering))
+            CONSOLE.log("[bold]Base stage done: in the viewer, press 'Click an instance' and click it, once per instance; then 'Write masks'")
+            clicks = controls.wait_for_confirm(held_lock=self._held_train_lock)
+        finally:
+            self.model.train(was_training)
+        write_clicks_json(self.clicks_path(), clicks)
+        CONSOLE.log(f"wrote {len(clicks)} clicks to {self.clicks_path()}")
+        return {"renders": renders, "clustering": clustering}
+
+    @torch.no_grad()
+    def make_instance_masks(self, renders=None, clustering=None) -> Dict:
         """Masks of every frame from the base model and the clicks (geometric backend of ``splatreplace masks``),
         written into the dataset folder (original transforms.json kept as transforms.json.before-masks) and
-        loaded into the datamanager, so that the contrastive stage trains on them."""
-        from splatreplace_ns.masks.base import frame_cameras
+        loaded into the datamanager, so that the contrastive stage trains on them. ``renders`` and
+        ``clustering``: those the viewer's clicks were checked against, when they were made there."""
         from splatreplace_ns.masks.command import masks_from_model
         from splatreplace_ns.masks.writer import write_dataset_masks
 
         start = time.perf_counter()
         transforms = self.transforms_path()
-        outputs = self.datamanager.train_dataparser_outputs
-        frames = frame_cameras(transforms, outputs.dataparser_transform, outputs.dataparser_scale)
-        command = self.config.masks.command(transforms.parent, self.clicks_path(), self.config.segmentation.min_alpha)
+        frames, command = self._mask_inputs()
         was_training = self.model.training
         self.model.eval()
         try:
-            masks, instances, report = masks_from_model(self.model, frames, load_clicks(self.clicks_path()), command)
+            masks, instances, report = masks_from_model(
+                self.model, frames, load_clicks(self.clicks_path()), command, clustering, renders
+            )
         finally:
             self.model.train(was_training)
         write_dataset_masks(transforms.parent, masks, instances)
@@ -291,7 +369,7 @@ class SplatReplacePipeline(VanillaPipeline):
         skipped: List[str] = []
         if self.should_wait_for_viewer():
             CONSOLE.log("[bold]Click one pixel per instance in the viewer, then press 'Confirm instances'")
-            self.selection_controls.wait_for_confirm()
+            self.selection_controls.wait_for_confirm(held_lock=self._held_train_lock)
         else:
             path = self.clicks_path()
             if not path.exists():

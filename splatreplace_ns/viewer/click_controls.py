@@ -4,11 +4,19 @@ A button arms exactly one click in the 3D view (a registered click callback bloc
 so it is removed after the click); a text field names the class of the next click; an undo button, a
 list and a status line; a confirm button that releases whoever waits. Subclasses say what a click, an
 undo and a confirmation do. An ``nn.Module`` only so that the viewer's scan of the pipeline finds it.
+
+Waiting inside ``ns-train``: the trainer holds its ``train_lock`` through every training step and its
+callbacks, and nerfstudio's viewer takes the same lock to render and to run any GUI button's callback. A
+wait for clicks that kept the lock would freeze the viewer and block the very button that ends the wait,
+so :meth:`ClickControls._wait` lets go of the lock the waiting thread holds; clicks in the 3D view take it
+while they render, so that they never render at the same time as the viewer does.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
+from typing import Optional
 
 from torch import nn
 
@@ -29,6 +37,8 @@ class ClickControls(nn.Module):
         self.confirm_button = ViewerButton(confirm_label, cb_hook=lambda _: self.confirm())
         self.listing = ViewerText(list_label, default_value="(none)", disabled=True)
         self.status = ViewerText(status_label, default_value=status, disabled=True)
+        self.render_lock: Optional[threading.Lock] = None
+        """The lock the viewer renders under (the trainer's ``train_lock``); clicks render under it too."""
 
     @property
     def viewer_running(self) -> bool:
@@ -45,7 +55,8 @@ class ClickControls(nn.Module):
     def _on_pointer(self, click: ViewerClick):
         if self.viewer_running:
             self.viewer_control.unregister_pointer_cb()
-        return self.on_click(click)
+        with self.render_lock if self.render_lock is not None else contextlib.nullcontext():
+            return self.on_click(click)
 
     def on_click(self, click: ViewerClick):
         raise NotImplementedError
@@ -56,6 +67,15 @@ class ClickControls(nn.Module):
     def confirm(self) -> None:
         raise NotImplementedError
 
-    def _wait(self, poll_s: float = 0.2) -> None:
-        while not self._confirmed.wait(poll_s):
-            pass
+    def _wait(self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None) -> None:
+        """Blocks until confirmed. ``held_lock``, a lock this thread holds (the training thread holds the
+        trainer's ``train_lock`` during its callbacks), is released meanwhile: the viewer renders, and runs its
+        buttons' callbacks, only under it."""
+        if held_lock is not None:
+            held_lock.release()
+        try:
+            while not self._confirmed.wait(poll_s):
+                pass
+        finally:
+            if held_lock is not None:
+                held_lock.acquire()

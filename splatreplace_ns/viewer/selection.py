@@ -7,6 +7,7 @@ owns an instance of this; nerfstudio's viewer finds the elements on it.
 
 from __future__ import annotations
 
+import threading
 from typing import TYPE_CHECKING, Optional
 
 import torch
@@ -29,31 +30,33 @@ class InstanceSelectionControls(ClickControls):
         self._pipeline = [pipeline]  # a list keeps the pipeline out of this module's children
 
     @property
-    def pipeline(self) -> "SplatReplacePipeline":
+    def _owner(self) -> "SplatReplacePipeline":
+        # private on purpose: nerfstudio's viewer walks every public attribute of the pipeline's modules for
+        # its GUI elements, and a public way back to the pipeline sends that walk round in a circle
         return self._pipeline[0]
 
     def _refresh(self) -> None:
-        selection = self.pipeline.selection
+        selection = self._owner.selection
         items = selection.summary() if selection else []
         self.listing.value = "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
-        model = self.pipeline.model
+        model = self._owner.model
         model.highlight = (selection.labels() > 0) if (selection and items) else None
 
     def arm_click(self) -> None:
-        if self.pipeline.selection is None:
+        if self._owner.selection is None:
             self._say("selection opens when training reaches the segmentation stage")
             return
         super().arm_click()
 
     def on_click(self, click: ViewerClick) -> Optional[int]:
         """Adds the clicked instance; a bad click only changes the status message."""
-        selection = self.pipeline.selection
+        selection = self._owner.selection
         if selection is None:
             self._say("selection opens when training reaches the segmentation stage")
             return None
         try:
             with torch.no_grad():
-                query = self.pipeline.query_from_ray(click.origin, click.direction)
+                query = self._owner.query_from_ray(click.origin, click.direction)
             instance = selection.add(query, self.class_name.value or "object", f"viewer click {len(selection.instances) + 1}")
         except SelectionError as err:
             self._say(str(err))
@@ -63,22 +66,22 @@ class InstanceSelectionControls(ClickControls):
         return instance.id
 
     def undo(self) -> None:
-        selection = self.pipeline.selection
+        selection = self._owner.selection
         removed = selection.undo() if selection else None
         self._refresh()
         self._say(f"removed instance {removed.id}" if removed else "nothing to undo")
 
     def confirm(self) -> None:
-        selection = self.pipeline.selection
+        selection = self._owner.selection
         if selection is None or not selection.instances:
             self._say("select at least one instance before confirming")
             return
         self._say(f"confirmed {len(selection.instances)} instances; training continues")
         self._confirmed.set()
 
-    def wait_for_confirm(self, poll_s: float = 0.2) -> None:
-        """Blocks the training thread until "Confirm instances" is pressed."""
+    def wait_for_confirm(self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None) -> None:
+        """Blocks the training thread until "Confirm instances" is pressed (``held_lock``: see ``_wait``)."""
         self._confirmed.clear()
         self._say("click 'Select instances', then one pixel per instance; 'Confirm instances' when done")
-        self._wait(poll_s)
-        self.pipeline.model.highlight = None
+        self._wait(poll_s, held_lock)
+        self._owner.model.highlight = None
