@@ -186,3 +186,31 @@ def lock_is_free(lock, timeout_s: float = 30.0) -> bool:
         return False
     lock.release()
     return True
+
+
+def viewer_render(trainer, camera) -> torch.Tensor:
+    """[h, w, 3] what nerfstudio's viewer shows from a dataset camera's pose and field of view, through the
+    viewer's own render path (its render state machine, which takes the trainer's lock), at the small size it
+    renders while the view is still."""
+    import math
+
+    from nerfstudio.cameras.cameras import CameraType
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+    from nerfstudio.viewer.utils import CameraState
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    machine = RenderStateMachine(trainer.viewer_state, VISER_NERFSTUDIO_SCALE_RATIO, client=None)
+    machine.state = "low_static"
+    height, width = float(camera.height), float(camera.width)
+    state = CameraState(fov=2 * math.atan(height / (2 * float(camera.fy))), aspect=width / height,
+                        c2w=camera.camera_to_worlds.reshape(3, 4), camera_type=CameraType.PERSPECTIVE)
+    return machine._render_img(state)["rgb"].detach().cpu()
+
+
+def psnr_against(image: torch.Tensor, reference: torch.Tensor) -> float:
+    """PSNR (dB) of [h, w, 3] ``image`` against [H, W, 3] ``reference`` resized to its size (area average)."""
+    import torch.nn.functional as F
+
+    ref = F.interpolate(reference.permute(2, 0, 1)[None].float(), size=image.shape[:2], mode="area")[0].permute(1, 2, 0)
+    mse = float(((image.float() - ref) ** 2).mean())
+    return 10 * np.log10(1.0 / max(mse, 1e-10))

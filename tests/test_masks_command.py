@@ -16,7 +16,10 @@ from splatreplace_ns.masks.command import MasksCommand, make_masks
 from splatreplace_ns.masks.lifting import ClickError
 from splatreplace_ns.masks.onnx_sam import OnnxModelError
 from splatreplace_ns.sim import make_scene
-from scenes import fire_viewer_click, free_port, lock_is_free, pixel_ray, press_viewer_button, train_with_viewer, wait_until
+from scenes import (
+    fire_viewer_click, free_port, lock_is_free, pixel_ray, press_viewer_button, psnr_against, train_with_viewer, viewer_render,
+    wait_until,
+)
 
 
 def mask_iou(scene, capture) -> list:
@@ -397,6 +400,10 @@ def test_ns_train_takes_the_clicks_for_the_masks_in_its_viewer(tmp_path):
         controls = pipeline.mask_click_controls
         wait_until(lambda: controls.connected, what="clicking to open at the end of the base stage")
         result["lock_free_while_waiting"] = lock_is_free(trainer.train_lock)
+        # the viewer renders the base model meanwhile (its own render path, under the trainer's lock)
+        dataset = pipeline.datamanager.train_dataset
+        index = pipeline.train_index_of(gt_clicks[0]["file_path"])
+        result["viewer_psnr"] = psnr_against(viewer_render(trainer, dataset.cameras[index]), dataset[index]["image"])
         for gt in gt_clicks:
             camera = pipeline.datamanager.train_dataset.cameras[pipeline.train_index_of(gt["file_path"])]
             controls.class_name.value = gt["class"]
@@ -414,7 +421,7 @@ def test_ns_train_takes_the_clicks_for_the_masks_in_its_viewer(tmp_path):
         lambda t: [t.pipeline.mask_click_controls._confirmed, t.pipeline.selection_controls._confirmed],
     )
     assert "error" not in result, result["error"]
-    assert result["lock_free_while_waiting"]
+    assert result["lock_free_while_waiting"] and result["viewer_psnr"] > 20, result
     written = json.loads((capture / "clicks.json").read_text())
     assert [c["class"] for c in written] == [c["class"] for c in gt_clicks], result["status_after_clicks"]
     report = trainer.pipeline.masks_report
