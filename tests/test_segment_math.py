@@ -135,3 +135,28 @@ def test_segmentation_scores_hand_made_case():
     assert abs(scores["miou"] - (4 / 6 + 1 / 4) / 2) < 1e-12
     # accuracies: instance 5 → 1, instance 7 → 1/4, background → 6/8
     assert abs(scores["macc"] - (1 + 0.25 + 0.75) / 3) < 1e-12
+
+
+def test_mask_coverage_counts_the_pixels_each_instance_covers_inside_its_own_mask():
+    masks = torch.zeros(4, 6, dtype=torch.long)
+    masks[:2, :3] = 1  # 6 pixels
+    masks[2:, 3:] = 2  # 6 pixels
+    alpha = torch.zeros(4, 6, 2)
+    alpha[0, :3, 0] = 0.9  # instance 1 covers 3 of its 6 pixels
+    alpha[1, 0, 0] = 0.49  # below min_alpha: not covered
+    alpha[:, :, 1] = 0.6  # instance 2 is everywhere: only its own 6 pixels count
+    from splatreplace_ns.segment.select import mask_coverage_counts
+
+    counts = mask_coverage_counts(masks, alpha, min_alpha=0.5)
+    assert counts.tolist() == [[3, 6], [6, 6]]
+    empty = mask_coverage_counts(torch.zeros(4, 6, dtype=torch.long), alpha)
+    assert empty.tolist() == [[0, 0], [0, 0]]  # an instance seen in no pixel of this view
+
+
+def test_undercovered_instances_are_named_with_their_share():
+    from splatreplace_ns.segment.select import undercovered_instances
+
+    instances = [{"id": 1, "class": "chair", "num_gaussians": 6}, {"id": 2, "class": "table", "num_gaussians": 900}]
+    messages = undercovered_instances(instances, [0.05, 0.6], min_coverage=0.2)
+    assert len(messages) == 1 and messages[0].startswith("instance 1 (chair, 6 Gaussians) covers 5% ")
+    assert undercovered_instances(instances, [0.2, 0.6], min_coverage=0.2) == []

@@ -37,7 +37,7 @@ from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.segment.clicks import Click, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
-from splatreplace_ns.segment.select import masks_from_rendered_features
+from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.rays import ray_camera
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
@@ -63,6 +63,10 @@ class SegmentationConfig:
     `splatreplace bench segment`, README)."""
     min_alpha: float = 0.5
     """Pixels with less accumulated opacity stay background in the rendered masks."""
+    min_mask_coverage: float = 0.2
+    """Warn about an instance whose selected Gaussians cover less of its rendered masks than this: carving then
+    removes the rest of it (tiny scene after 300 + 200 iterations: 2-7 %, and carving takes the training views'
+    PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-82 %)."""
 
 
 @dataclass
@@ -401,12 +405,19 @@ class SplatReplacePipeline(VanillaPipeline):
 
         cameras = self.datamanager.train_dataset.cameras
         masks, depths = [], []
+        one_hot = torch.nn.functional.one_hot(labels, queries.shape[0] + 1)[:, 1:].float()  # [N, M]
+        coverage = torch.zeros(queries.shape[0], 2, dtype=torch.long, device=self.device)
         for idx in range(len(cameras)):
             camera = cameras[idx : idx + 1].to(self.device)
             features, alpha, depth = model.render_features(camera)
             masks.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha))
             depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])))
+            instance_alpha, _, _ = model.render_features(camera, one_hot)
+            coverage += mask_coverage_counts(masks[-1], instance_alpha, cfg.min_alpha)
         self.instance_masks_2d = torch.stack(masks).to(torch.int16)
+        coverage = (coverage[:, 0].float() / coverage[:, 1].clamp_min(1).float()).tolist()
+        for message in undercovered_instances(self.selection.summary(), coverage, cfg.min_mask_coverage):
+            CONSOLE.log(f"[bold yellow]segmentation: {message}")
 
         background = labels == 0
         removed = 0
@@ -434,6 +445,7 @@ class SplatReplacePipeline(VanillaPipeline):
         model.stage = "segmented"
         self.segmentation_report = {
             "instances": model.instances,
+            "mask_coverage": {instance["id"]: share for instance, share in zip(model.instances, coverage)},
             "carved": removed,
             "gaussians": model.num_points,
             "instance_gaussians": int((labels > 0).sum()),
