@@ -132,9 +132,31 @@ def test_unknown_instance_id_is_named(tmp_path):
 
 def test_mask_size_mismatch_is_named(tmp_path):
     write_dataset(tmp_path)
-    cv2.imwrite(str(tmp_path / "masks/0001.png"), np.zeros((H // 2, W // 2), np.uint16))
-    with pytest.raises(DatasetFormatError, match=r"masks/0001\.png: size 16x12 does not match"):
+    cv2.imwrite(str(tmp_path / "masks/0001.png"), np.zeros((H // 2, W), np.uint16))  # not the image's shape
+    with pytest.raises(DatasetFormatError, match=r"masks/0001\.png: size 32x12 does not match"):
         setup_dm(tmp_path).next_train(0)
+
+
+def test_a_mask_of_the_image_at_another_scale_is_resized_to_it(tmp_path):
+    """A mask at twice the image's size (made from the full-size files while nerfstudio reads images_2/, or the
+    other way round) is the same picture: it loads, resized with the nearest label, never a blend of two ids."""
+    from splatreplace_ns.datamanager.dataset import read_instance_mask
+
+    labels = np.random.default_rng(0).integers(0, 3, size=(H, W)).astype(np.uint16)
+    big = np.kron(labels, np.ones((2, 2), np.uint16))  # every pixel of the image as a 2x2 block
+    cv2.imwrite(str(tmp_path / "big.png"), big)
+    assert np.array_equal(read_instance_mask(tmp_path / "big.png", H, W)[..., 0].numpy(), labels)
+    small = read_instance_mask(tmp_path / "big.png", H // 2, W // 2)[..., 0].numpy()
+    assert small.shape == (H // 2, W // 2) and set(np.unique(small)) <= {0, 1, 2}
+
+
+def test_resized_pixel_keeps_the_point_of_the_picture():
+    from splatreplace_ns.segment.clicks import resized_pixel
+
+    # pixels 0 and 1 of the full-size image are the two halves of pixel 0 at half size
+    assert resized_pixel((0, 1), 0.5) == (-0.25, 0.25)
+    assert resized_pixel((3.5, 0.5), 0.5) == (1.5, 0.0)
+    assert resized_pixel(resized_pixel((7.3, 2.2), 0.25), 4.0) == pytest.approx((7.3, 2.2))
 
 
 def test_missing_mask_is_named(tmp_path):

@@ -429,3 +429,39 @@ def test_ns_train_takes_the_clicks_for_the_masks_in_its_viewer(tmp_path):
     ious = mask_iou(scene, capture)
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
     assert len(trainer.pipeline.segmentation_report["instances"]) == 3
+
+
+def test_ns_train_makes_the_masks_of_a_capture_it_reads_downscaled(tmp_path):
+    """nerfstudio reads a large capture from its downscaled copies (images_<f>/, what ns-process-data writes;
+    automatic above 1600 pixels): the clicks (pixels of the full-size files) are read at the downscaled size,
+    the masks are made and written at the size the images are trained at, and they load."""
+    from splatreplace_ns.method.train import make_trainer_config, run_training
+
+    scene, capture = tmp_path / "scene", tmp_path / "capture"
+    make_scene("tiny", scene, res="128x96", n_train=12)
+    strip_ground_truth(scene, capture)
+    (capture / "images_2").mkdir()
+    for image in sorted((capture / "images").iterdir()):
+        full = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(capture / "images_2" / image.name), cv2.resize(full, (64, 48), interpolation=cv2.INTER_AREA))
+    config = make_trainer_config(capture, tmp_path / "runs", 400, 300)
+    config.pipeline.datamanager.dataparser.downscale_factor = 2
+    config.pipeline.model.num_downscales = 0  # as the segmentation stage's tests: features that select every crate
+    config.pipeline.model.warmup_length = 100
+    config.pipeline.datamanager.contrastive_uniform_samples = 1024
+    config.pipeline.datamanager.contrastive_mask_samples = 512
+    trainer = run_training(config)
+
+    assert [inst["id"] for inst in trainer.pipeline.masks_report["instances"]] == [1, 2, 3]
+    gt_meta = json.loads((scene / "transforms.json").read_text())
+    ours_meta = json.loads((capture / "transforms.json").read_text())
+    ours = np.stack([cv2.imread(str(capture / f["instance_mask_path"]), -1) for f in ours_meta["frames"]])
+    assert ours.shape[1:] == (48, 64)  # the size the images are trained at
+    gt = np.stack([cv2.resize(cv2.imread(str(scene / f["instance_mask_path"]), -1), (64, 48), interpolation=cv2.INTER_NEAREST)
+                   for f in gt_meta["frames"]])
+    clicks = json.loads((scene / "clicks.json").read_text())
+    ious = [float(((ours == k) & (gt == c["id"])).sum()) / float(((ours == k) | (gt == c["id"])).sum())
+            for k, c in enumerate(clicks, start=1)]
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
+    # the segmentation stage read each click at its downscaled pixel: every instance was selected
+    assert len(trainer.pipeline.segmentation_report["instances"]) == 3, trainer.pipeline.segmentation_report

@@ -462,10 +462,12 @@ def test_colmap_export_and_import_round_trip(tmp_path):
     assert (capture / ours["ply_file_path"]).exists()
 
 
-def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path):
-    """clicks.json gives pixels of the image files; the base model renders pinhole images. A 3D point's pixel in
-    the distorted file (OpenCV's projection with the lens) is mapped to the render's pixel, and lifting it at the
-    point's depth gives the point back; the map inverts (the viewer writes its clicks through the inverse)."""
+@pytest.mark.parametrize("downscale", [1, 2])
+def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path, downscale):
+    """clicks.json gives pixels of the image files; the base model renders pinhole images (at 1/downscale of the
+    files when nerfstudio reads images_<downscale>/). A 3D point's pixel in the distorted file (OpenCV's
+    projection with the lens, at the file's size) is mapped to the render's pixel, and lifting it at the point's
+    depth gives the point back; the map inverts (the viewer writes its clicks through the inverse)."""
     from splatreplace_ns.masks.base import frame_cameras
     from splatreplace_ns.masks.lifting import lift_pixel, view_and_intrinsics
 
@@ -476,12 +478,14 @@ def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path)
             "k1": -0.35, "k2": 0.1, "p1": 0.004, "p2": -0.003,
             "frames": [{"file_path": "images/0000.png", "transform_matrix": c2w.tolist()}]}
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
-    frames = frame_cameras(tmp_path / "transforms.json", torch.eye(4)[:3], 1.0)
+    frames = frame_cameras(tmp_path / "transforms.json", torch.eye(4)[:3], 1.0, downscale)
     viewmat, K, _, _ = view_and_intrinsics(frames.cameras[0:1])
+    assert int(frames.cameras.width[0]) == 96 // downscale and int(frames.cameras.height[0]) == 72 // downscale
     rng = np.random.default_rng(0)
     points = np.c_[rng.uniform(-1.2, 1.8, 30), rng.uniform(-1.4, 1.0, 30), rng.uniform(-0.5, 0.5, 30)]
     camera = points @ viewmat[:3, :3].double().numpy().T + viewmat[:3, 3].double().numpy()
-    K_cv = K.double().numpy() - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    K_file = np.array([[80.0, 0, 49.5], [0, 82.0, 34.0], [0, 0, 1]])  # the image file's camera
+    K_cv = K_file - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
     coeffs = np.array([-0.35, 0.1, 0.004, -0.003])
     pixels = cv2.projectPoints(camera, np.zeros(3), np.zeros(3), K_cv, coeffs)[0].reshape(-1, 2)
     errors, naive = [], []
@@ -491,3 +495,4 @@ def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path)
         naive.append(np.linalg.norm(lift_pixel(xy[0], xy[1], z, viewmat.double(), K.double()).numpy() - point))
         assert np.allclose(frames.captured_pixel(0, (u, v)), xy, atol=0.01)
     assert max(errors) < 1e-4 and max(naive) > 0.05, (max(errors), max(naive))
+    assert frames.image_path(tmp_path, 0) == tmp_path / ("images/0000.png" if downscale == 1 else "images_2/0000.png")

@@ -16,6 +16,7 @@ from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParser, Splat
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
 from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, remap_nearest, undistortion_maps
 from splatreplace_ns.segment.sampling import sample_contrastive_pixels
+from splatreplace_ns.segment.clicks import resized_pixel
 
 
 @dataclass
@@ -79,8 +80,12 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
 
     def train_pixel(self, index: int, xy: Tuple[float, float]) -> Tuple[float, float]:
         """A pixel of training image ``index`` as stored (a click of clicks.json) → the same ray's pixel in the
-        image as cached, which nerfstudio undistorts and crops when the camera has distortion."""
+        image as cached: read from ``images_<f>/`` when nerfstudio downscales the images by f, then undistorted
+        and cropped when the camera has distortion."""
         _ = self.cached_train  # caching is where nerfstudio undistorts, and where the captured cameras are kept
+        downscale = int(getattr(self.dataparser, "downscale_factor", None) or 1)
+        if downscale > 1:
+            xy = resized_pixel(xy, 1.0 / downscale)
         captured = self.captured_cameras["train"]
         if captured.distortion is None or not bool(captured.distortion[index].any()):
             return float(xy[0]), float(xy[1])

@@ -18,6 +18,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from splatreplace_ns.datamanager.dataparser import DatasetFormatError
 from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, undistorted_to_captured_pixel
+from splatreplace_ns.segment.clicks import resized_pixel
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
@@ -32,20 +33,32 @@ class FrameCameras:
     """[F] pinhole cameras (OpenGL camera→world, normalised frame)."""
     distortion: np.ndarray
     """[F, 6] OpenCV distortion (k1, k2, k3, k4, p1, p2); zeros for pinhole frames."""
+    downscale: int = 1
+    """nerfstudio's image downscale factor: the cameras (and renders, and masks) are at 1/downscale of the image
+    files of ``file_paths``, whose downscaled copies nerfstudio reads from ``images_<downscale>/``."""
+
+    def image_path(self, data: Path, frame: int) -> Path:
+        """The image file at the cameras' size (where nerfstudio's dataparser reads it)."""
+        if self.downscale > 1:
+            return Path(data) / f"images_{self.downscale}" / Path(self.file_paths[frame]).name
+        return Path(data) / self.file_paths[frame]
 
     def pinhole_pixel(self, frame: int, xy: Tuple[float, float]) -> Tuple[float, float]:
         """A pixel of the frame's image file (a click) → the same ray's pixel in the pinhole render of its camera."""
+        xy = resized_pixel(xy, 1.0 / self.downscale) if self.downscale > 1 else (float(xy[0]), float(xy[1]))
         if not np.any(self.distortion[frame]):
-            return float(xy[0]), float(xy[1])
+            return xy
         K = self.cameras.get_intrinsics_matrices()[frame].numpy()
         return captured_to_undistorted_pixel(xy, CameraType.PERSPECTIVE.value, K, self.distortion[frame], K)
 
     def captured_pixel(self, frame: int, xy: Tuple[float, float]) -> Tuple[float, float]:
         """The inverse of :meth:`pinhole_pixel`, rounded to 1/100 pixel."""
-        if not np.any(self.distortion[frame]):
-            return float(xy[0]), float(xy[1])
-        K = self.cameras.get_intrinsics_matrices()[frame].numpy()
-        u, v = undistorted_to_captured_pixel(xy, CameraType.PERSPECTIVE.value, K, self.distortion[frame], K)
+        u, v = float(xy[0]), float(xy[1])
+        if np.any(self.distortion[frame]):
+            K = self.cameras.get_intrinsics_matrices()[frame].numpy()
+            u, v = undistorted_to_captured_pixel((u, v), CameraType.PERSPECTIVE.value, K, self.distortion[frame], K)
+        if self.downscale > 1:
+            u, v = resized_pixel((u, v), float(self.downscale))
         return round(u, 2), round(v, 2)
 
     def index_of(self, file_path: str, source: str) -> int:
@@ -57,13 +70,17 @@ class FrameCameras:
         return names.index(name)
 
 
-def frame_cameras(transforms_path: Path, dataparser_transform: torch.Tensor, dataparser_scale: float) -> FrameCameras:
+def frame_cameras(
+    transforms_path: Path, dataparser_transform: torch.Tensor, dataparser_scale: float, downscale: int = 1
+) -> FrameCameras:
     """Cameras of all frames, moved into the dataparser's normalised frame.
 
     Args:
         transforms_path: the dataset's transforms.json.
         dataparser_transform: [3, 4] the parser's world transform (what nerfstudio stored in the run).
         dataparser_scale: its scale, applied to camera centres after the transform.
+        downscale: nerfstudio's image downscale factor (``DataParser.downscale_factor``): the cameras are
+            scaled to 1/downscale of the image files, as the dataparser scales them.
     """
     meta = json.loads(Path(transforms_path).read_text())
     frames = meta.get("frames") or []
@@ -105,7 +122,10 @@ def frame_cameras(transforms_path: Path, dataparser_transform: torch.Tensor, dat
         height=torch.tensor(hs)[:, None],
         camera_type=CameraType.PERSPECTIVE,
     )
-    return FrameCameras([str(f["file_path"]) for f in frames], cameras, np.asarray(dist, dtype=np.float64))
+    downscale = int(downscale or 1)
+    if downscale > 1:
+        cameras.rescale_output_resolution(scaling_factor=1.0 / downscale)
+    return FrameCameras([str(f["file_path"]) for f in frames], cameras, np.asarray(dist, dtype=np.float64), downscale)
 
 
 @dataclass
@@ -121,6 +141,16 @@ class BaseModel:
     """config.yml of the run (reuse it with ``--load-config``)."""
     pipeline: Any = None
     """The run's pipeline (what nerfstudio's viewer shows)."""
+
+    @property
+    def downscale(self) -> int:
+        """nerfstudio's image downscale factor in this run (1 without a pipeline)."""
+        return image_downscale(self.pipeline.datamanager) if self.pipeline is not None else 1
+
+
+def image_downscale(datamanager) -> int:
+    """The factor nerfstudio's dataparser scaled this run's images and cameras down by (``images_<f>/``)."""
+    return int(getattr(datamanager.dataparser, "downscale_factor", None) or 1)
 
 
 def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: Optional[str] = None) -> BaseModel:

@@ -353,7 +353,7 @@ def masks_from_model(
     for index, file_path in enumerate(frames.file_paths):
         camera = frames.cameras[index : index + 1].to(model.device)
         width, height = int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
-        image = read_rgb(Path(cfg.data) / file_path, width, height)
+        image = read_rgb(frames.image_path(Path(cfg.data), index), width, height)
         if sam is None:
             mask = render_instance_masks(
                 model, camera, instance_of_gaussian, len(lifted), image, cfg.border, frames.distortion[index]
@@ -387,7 +387,7 @@ def make_masks(cfg: MasksCommand) -> Dict:
     base_s = time.perf_counter() - start
     model = base.model
     model.eval()
-    frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale)
+    frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale, base.downscale)
 
     t0 = time.perf_counter()
     clustering = model_clustering(model, cfg.clustering, frames)

@@ -30,6 +30,12 @@ def pixel_index(u: float, v: float, width: int, height: int) -> Optional[Tuple[i
     return row, col
 
 
+def resized_pixel(xy: Tuple[float, float], factor: float) -> Tuple[float, float]:
+    """The same point of the picture in the image resized by ``factor`` (0.25: nerfstudio's images_4), in pixel
+    index coordinates (pixel k's centre at k): the picture's continuous coordinate x + 0.5 scales with the image."""
+    return (float(xy[0]) + 0.5) * factor - 0.5, (float(xy[1]) + 0.5) * factor - 0.5
+
+
 def load_clicks(path: Path) -> List[Click]:
     """Reads ``[{"file_path", "xy": [u, v], "class"}, ...]``; errors name the file and the entry."""
     try:
