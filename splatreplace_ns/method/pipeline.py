@@ -252,11 +252,13 @@ class SplatReplacePipeline(VanillaPipeline):
         was_training = self.model.training
         self.model.eval()
         try:
+            CONSOLE.log(f"base stage done: rendering {len(frames.file_paths)} frames and clustering the Gaussians, "
+                        "against which the viewer checks each click")
             renders = render_frames(self.model, frames)
             clustering = model_clustering(self.model, command.clustering, frames)
             controls = self.mask_click_controls
             controls.connect(*mask_click_functions(self.model, frames, command, renders, clustering))
-            CONSOLE.log("[bold]Base stage done: in the viewer, press 'Click an instance' and click it, once per instance; then 'Write masks'")
+            CONSOLE.log("[bold]In the viewer, press 'Click an instance' and click it, once per instance; then 'Write masks'")
             clicks = controls.wait_for_confirm(held_lock=self._held_train_lock)
         finally:
             self.model.train(was_training)
