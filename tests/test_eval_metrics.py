@@ -363,6 +363,7 @@ def test_eval_report_of_a_segmented_model(segmented_run, tmp_path):
     assert "lpips" not in report and "AlexNet weights not found" in unavailable["lpips"]
     assert "kid" not in report and "InceptionV3 weights not found" in unavailable["kid"]
 
+    assert report["instance_masks"] == "ground truth"
     segmentation = report["segmentation"]
     clicks = json.loads((data / "clicks.json").read_text())
     assert set(segmentation["iou"]) == {str(c["id"]) for c in clicks}

@@ -356,6 +356,14 @@ def test_ns_train_makes_the_masks_of_a_colmap_capture(tmp_path):
     ious = mask_iou(scene, capture)
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious  # as good as `splatreplace masks` at this budget
     assert trainer.pipeline.segmentation_report["instances"]
+    # ns-eval's report: the masked metrics cover these masks, and no segmentation is scored against masks that
+    # were made from the same clicks
+    assert meta["instance_masks_source"] == "clicks"
+    from splatreplace_ns.method.train import evaluate_test_views
+
+    metrics = evaluate_test_views(trainer)
+    assert "segmentation" not in metrics and "made from the clicks" in metrics["unavailable"]["segmentation"]
+    assert metrics["instance_masks"].startswith("made from the clicks")
 
 
 def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):

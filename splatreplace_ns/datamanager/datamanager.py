@@ -105,8 +105,9 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
             outputs = dataset._dataparser_outputs
             filenames = SplatReplaceDataParser._instance_mask_filenames(meta, transforms.parent, outputs.image_filenames, transforms)
             instances = SplatReplaceDataParser._instances(meta, outputs)
-            outputs.metadata.update(instance_mask_filenames=filenames, instances=instances)
-            dataset.use_instance_masks(filenames, instances)
+            source = SplatReplaceDataParser._instance_masks_source(meta, transforms)
+            outputs.metadata.update(instance_mask_filenames=filenames, instances=instances, instance_masks_source=source)
+            dataset.use_instance_masks(filenames, instances, source)
             cached = self.__dict__.get("cached_train" if split == "train" else "cached_eval")
             if cached is None:  # not cached yet: it reads the masks when it is
                 continue

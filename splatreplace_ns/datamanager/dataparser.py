@@ -82,8 +82,20 @@ class SplatReplaceDataParser(Nerfstudio):
             meta, data_dir, outputs.image_filenames, transforms_path
         )
         outputs.metadata["instances"] = self._instances(meta, outputs)
+        outputs.metadata["instance_masks_source"] = self._instance_masks_source(meta, transforms_path)
         outputs.metadata["depth_zero_is_far"] = self._depth_zero_is_far(meta, transforms_path)
         return outputs
+
+    @staticmethod
+    def _instance_masks_source(meta: Dict, transforms_path: Path) -> str:
+        """Where the instance masks come from: ``"ground_truth"`` (default) or ``"clicks"`` (``splatreplace masks``
+        or ``ns-train`` made them; evaluation then scores no segmentation against them)."""
+        value = meta.get("instance_masks_source", "ground_truth")
+        if value not in ("ground_truth", "clicks"):
+            raise DatasetFormatError(
+                f"{transforms_path}: 'instance_masks_source' is {value!r}; expected 'ground_truth' or 'clicks'"
+            )
+        return value
 
     @staticmethod
     def _depth_zero_is_far(meta: Dict, transforms_path: Path) -> bool:

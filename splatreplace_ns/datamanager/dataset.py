@@ -65,6 +65,7 @@ class SplatReplaceDataset(InputDataset):
         self.depth_unit_scale_factor = self.metadata.get("depth_unit_scale_factor", 1e-3)
         self.depth_zero_is_far = bool(self.metadata.get("depth_zero_is_far", False))
         self.instance_mask_filenames = self.metadata.get("instance_mask_filenames")
+        self.instance_masks_source = self.metadata.get("instance_masks_source", "ground_truth")
         instances = self.metadata.get("instances") or []
         self.instance_ids = {int(inst["id"]) for inst in instances} if instances else None
 
@@ -89,8 +90,9 @@ class SplatReplaceDataset(InputDataset):
         """[H, W, 1] int32 instance mask of image ``idx``, checked against its size and the listed ids."""
         return read_instance_mask(Path(self.instance_mask_filenames[idx]), height, width, self.instance_ids)
 
-    def use_instance_masks(self, filenames: List[Path], instances: List[Dict]) -> None:
+    def use_instance_masks(self, filenames: List[Path], instances: List[Dict], source: str = "clicks") -> None:
         """Masks written after this dataset was made (``ns-train`` making them from the clicks)."""
-        self.metadata.update(instance_mask_filenames=filenames, instances=instances)
+        self.metadata.update(instance_mask_filenames=filenames, instances=instances, instance_masks_source=source)
         self.instance_mask_filenames = filenames
+        self.instance_masks_source = source
         self.instance_ids = {int(inst["id"]) for inst in instances} if instances else None

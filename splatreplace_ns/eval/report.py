@@ -121,6 +121,11 @@ def versions() -> Dict[str, Optional[str]]:
     }
 
 
+def masks_from_clicks(dataset) -> bool:
+    """Whether the dataset's instance masks were made from the clicks rather than given as ground truth."""
+    return getattr(dataset, "instance_masks_source", "ground_truth") == "clicks"
+
+
 def segmentation_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
     """mIoU/mAcc of the model's segmentation on the eval views, or (None, why not)."""
     from splatreplace_ns.eval.segmentation import score_views_from_clicks
@@ -131,6 +136,9 @@ def segmentation_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
     dataset = pipeline.datamanager.eval_dataset
     if getattr(dataset, "instance_mask_filenames", None) is None:
         return None, "the eval views have no ground-truth instance masks"
+    if masks_from_clicks(dataset):
+        return None, ("the eval views' instance masks were made from the clicks (splatreplace masks or ns-train), "
+                      "not ground truth: a score against them would measure the segmentation against itself")
     if getattr(model, "has_templates", False):
         return replaced_segmentation_scores(pipeline, dataset)
     clicks = pipeline.clicks_path()
@@ -272,12 +280,18 @@ def evaluation_report(pipeline, recorder: EvalViewRecorder) -> Dict:
         reason = "no eval view contains a ground-truth instance" if has_masks else "the eval views have no ground-truth instance masks"
         unavailable.update({key: reason for key in MASKED_KEYS})
 
+    from_clicks = masks_from_clicks(pipeline.datamanager.eval_dataset)
+    if getattr(pipeline.datamanager.eval_dataset, "instance_mask_filenames", None) is not None:
+        report["instance_masks"] = (
+            "made from the clicks (splatreplace masks or ns-train), not ground truth: the masked metrics and the "
+            "per-instance PSNR cover those masks' pixels" if from_clicks else "ground truth"
+        )
     per_label = recorder.psnr_per_label()
     if per_label:
         report["psnr_per_instance"] = {str(k): v for k, v in per_label.items()}
         report["psnr_per_instance_definition"] = (
-            "PSNR of the squared error pooled over each ground-truth instance's pixels in all eval views; "
-            "key 0 is the background (pixels of no instance)"
+            f"PSNR of the squared error pooled over each {'' if from_clicks else 'ground-truth '}instance's pixels "
+            "in all eval views (the dataset's instance masks); key 0 is the background (pixels of no instance)"
         )
     for name, make in (("segmentation", segmentation_report), ("registration", registration_report)):
         section, reason = make(pipeline)

@@ -12,6 +12,9 @@ import cv2
 import numpy as np
 
 BACKUP_SUFFIX = ".before-masks"
+MASKS_SOURCE_KEY = "instance_masks_source"
+"""transforms.json key saying where the instance masks come from: ``"clicks"`` (written here, from one click per
+instance and the base model) or ``"ground_truth"`` (the default when absent: a synthetic scene's, or a person's)."""
 
 
 def mask_path(frame_index: int) -> str:
@@ -36,7 +39,8 @@ def encode_mask(mask: np.ndarray) -> bytes:
 
 
 def updated_transforms(meta: Dict, mask_paths: Sequence[str], instances: List[Dict]) -> Dict:
-    """``meta`` with ``frames[i].instance_mask_path`` and ``instances`` set (other keys and their order kept).
+    """``meta`` with ``frames[i].instance_mask_path``, ``instances`` and ``instance_masks_source`` set (other keys and
+    their order kept).
 
     Depends only on ``meta`` without those entries, so a rerun on its own output gives the same JSON.
     """
@@ -46,6 +50,7 @@ def updated_transforms(meta: Dict, mask_paths: Sequence[str], instances: List[Di
     for frame, path in zip(out["frames"], mask_paths):
         frame["instance_mask_path"] = path
     out["instances"] = instances
+    out[MASKS_SOURCE_KEY] = "clicks"  # ns-eval must not score a segmentation against masks made from it
     return out
 
 
