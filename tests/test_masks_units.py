@@ -496,3 +496,21 @@ def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path,
         assert np.allclose(frames.captured_pixel(0, (u, v)), xy, atol=0.01)
     assert max(errors) < 1e-4 and max(naive) > 0.05, (max(errors), max(naive))
     assert frames.image_path(tmp_path, 0) == tmp_path / ("images/0000.png" if downscale == 1 else "images_2/0000.png")
+
+
+def test_images_are_read_as_nerfstudio_reads_them_whatever_their_exif_orientation(tmp_path):
+    """A phone JPEG tagged "rotate 90°": nerfstudio (PIL) trains on the stored pixels, so the masks must see
+    the same ones (OpenCV would otherwise turn the image, and its size would no longer match its camera)."""
+    from PIL import Image
+
+    from splatreplace_ns.masks.command import read_rgb
+
+    pixels = np.zeros((30, 40, 3), np.uint8)
+    pixels[:, :20] = (250, 10, 10)  # left half red
+    exif = Image.Exif()
+    exif[0x0112] = 6  # orientation: rotate 90° clockwise to display
+    Image.fromarray(pixels).save(tmp_path / "photo.jpg", exif=exif, quality=95)
+    as_nerfstudio = np.array(Image.open(tmp_path / "photo.jpg"))
+    image = read_rgb(tmp_path / "photo.jpg", 40, 30)
+    assert image.shape == (30, 40, 3) and np.abs(image.astype(int) - as_nerfstudio.astype(int)).max() <= 2
+    assert image[:, :20, 0].mean() > 200 and image[:, 20:, 0].mean() < 50

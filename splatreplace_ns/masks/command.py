@@ -128,7 +128,9 @@ def _clicks(cfg: MasksCommand) -> List[Click]:
 
 def read_rgb(path: Path, width: int, height: int) -> np.ndarray:
     """[H, W, 3] uint8 RGB of a frame, checked against its camera's size."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    # as nerfstudio reads it (PIL, no EXIF rotation): a phone photo's orientation tag must not turn the image
+    # away from its camera
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
         raise FileNotFoundError(f"{path}: image not found or unreadable")
     if image.shape[:2] != (height, width):
