@@ -214,3 +214,23 @@ def psnr_against(image: torch.Tensor, reference: torch.Tensor) -> float:
     ref = F.interpolate(reference.permute(2, 0, 1)[None].float(), size=image.shape[:2], mode="area")[0].permute(1, 2, 0)
     mse = float(((image.float() - ref) ** 2).mean())
     return 10 * np.log10(1.0 / max(mse, 1e-10))
+
+
+def viewer_psnr(trainer, file_path: str) -> float:
+    """PSNR of what the viewer shows from a training image's camera (:func:`viewer_render`) against that image."""
+    pipeline = trainer.pipeline
+    dataset = pipeline.datamanager.train_dataset
+    index = pipeline.train_index_of(file_path)
+    return psnr_against(viewer_render(trainer, dataset.cameras[index]), dataset[index]["image"])
+
+
+def click_in_viewer(trainer, controls, clicks) -> str:
+    """For each click of a clicks.json list, as a person would: set the class, press the arm button, click the
+    3D view along the camera ray through the clicked pixel. Returns the status line after the last click."""
+    pipeline = trainer.pipeline
+    for click in clicks:
+        camera = pipeline.datamanager.train_dataset.cameras[pipeline.train_index_of(click["file_path"])]
+        controls.class_name.value = click["class"]
+        press_viewer_button(controls.arm_button)
+        fire_viewer_click(controls.viewer_control.viser_server, *pixel_ray(camera, *click["xy"]))
+    return controls.status.value

@@ -17,7 +17,7 @@ from splatreplace_ns.masks.lifting import ClickError
 from splatreplace_ns.masks.onnx_sam import OnnxModelError
 from splatreplace_ns.sim import make_scene
 from scenes import (
-    fire_viewer_click, free_port, lock_is_free, pixel_ray, press_viewer_button, psnr_against, train_with_viewer, viewer_render,
+    click_in_viewer, fire_viewer_click, free_port, lock_is_free, press_viewer_button, train_with_viewer, viewer_psnr,
     wait_until,
 )
 
@@ -409,15 +409,8 @@ def test_ns_train_takes_the_clicks_for_the_masks_in_its_viewer(tmp_path):
         wait_until(lambda: controls.connected, what="clicking to open at the end of the base stage")
         result["lock_free_while_waiting"] = lock_is_free(trainer.train_lock)
         # the viewer renders the base model meanwhile (its own render path, under the trainer's lock)
-        dataset = pipeline.datamanager.train_dataset
-        index = pipeline.train_index_of(gt_clicks[0]["file_path"])
-        result["viewer_psnr"] = psnr_against(viewer_render(trainer, dataset.cameras[index]), dataset[index]["image"])
-        for gt in gt_clicks:
-            camera = pipeline.datamanager.train_dataset.cameras[pipeline.train_index_of(gt["file_path"])]
-            controls.class_name.value = gt["class"]
-            press_viewer_button(controls.arm_button)
-            fire_viewer_click(controls.viewer_control.viser_server, *pixel_ray(camera, *gt["xy"]))
-        result["status_after_clicks"] = controls.status.value
+        result["viewer_psnr"] = viewer_psnr(trainer, gt_clicks[0]["file_path"])
+        result["status_after_clicks"] = click_in_viewer(trainer, controls, gt_clicks)
         press_viewer_button(controls.confirm_button)
         # the segmentation stage takes the written clicks.json: it must not wait in the viewer again
         wait_until(lambda: pipeline.segmentation_report or "Select instances" in pipeline.selection_controls.status.value,

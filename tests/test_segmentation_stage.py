@@ -13,8 +13,7 @@ from splatreplace_ns.segment.clicks import Click
 from splatreplace_ns.segment.instances import SelectionError
 from splatreplace_ns.sim import make_scene
 from scenes import (
-    fire_viewer_click, free_port, lock_is_free, pixel_ray, press_viewer_button, psnr_against, train_with_viewer, viewer_render,
-    wait_until,
+    click_in_viewer, fire_viewer_click, free_port, lock_is_free, press_viewer_button, train_with_viewer, viewer_psnr, wait_until,
 )
 
 
@@ -163,25 +162,16 @@ def test_ns_train_waits_for_the_instance_clicks_in_its_viewer(tmp_path):
         wait_until(lambda: pipeline.selection is not None and "Select instances" in controls.status.value,
                    what="the selection to open at the end of the contrastive stage")
         result["lock_free_while_waiting"] = lock_is_free(trainer.train_lock)
-        dataset = pipeline.datamanager.train_dataset
-        index = pipeline.train_index_of(clicks[0]["file_path"])
-        result["psnr_waiting"] = psnr_against(viewer_render(trainer, dataset.cameras[index]), dataset[index]["image"])
-        for click in clicks:
-            camera = pipeline.datamanager.train_dataset.cameras[pipeline.train_index_of(click["file_path"])]
-            controls.class_name.value = click["class"]
-            press_viewer_button(controls.arm_button)
-            fire_viewer_click(controls.viewer_control.viser_server, *pixel_ray(camera, *click["xy"]))
-        result["status_after_clicks"] = controls.status.value
+        result["psnr_waiting"] = viewer_psnr(trainer, clicks[0]["file_path"])
+        result["status_after_clicks"] = click_in_viewer(trainer, controls, clicks)
         press_viewer_button(controls.confirm_button)
         wait_until(lambda: pipeline.model.has_templates, what="the fine-tuning stage")
-        result["psnr_finetuning"] = psnr_against(viewer_render(trainer, dataset.cameras[index]), dataset[index]["image"])
+        result["psnr_finetuning"] = viewer_psnr(trainer, clicks[0]["file_path"])
 
     trainer, result = train_with_viewer(config, user, lambda t: [t.pipeline.selection_controls._confirmed])
     assert "error" not in result, result["error"]
     pipeline = trainer.pipeline
-    dataset = pipeline.datamanager.train_dataset
-    index = pipeline.train_index_of(clicks[0]["file_path"])
-    psnr_end = psnr_against(viewer_render(trainer, dataset.cameras[index]), dataset[index]["image"])
+    psnr_end = viewer_psnr(trainer, clicks[0]["file_path"])
     # the replaced scene right after the templates are built is coarser than the base at this tiny budget
     # (17.2-17.7 dB against 27.8 in the runs so far) and fine-tuning brings it back (24.3)
     assert result["lock_free_while_waiting"] and result["psnr_waiting"] > 20 and result["psnr_finetuning"] > 14, result
