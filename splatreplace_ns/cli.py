@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from dataclasses import dataclass
 from typing import Union
+
+# nerfstudio's camera utilities use torch.jit.script, which torch now deprecates: a warning on every command
+# (``--help`` included) that the user can do nothing about
+warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", category=FutureWarning)
 
 import tyro
 from typing_extensions import Annotated
