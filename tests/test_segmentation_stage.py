@@ -164,6 +164,8 @@ def test_ns_train_waits_for_the_instance_clicks_in_its_viewer(tmp_path):
         result["lock_free_while_waiting"] = lock_is_free(trainer.train_lock)
         result["psnr_waiting"] = viewer_psnr(trainer, clicks[0]["file_path"])
         result["status_after_clicks"] = click_in_viewer(trainer, controls, clicks)
+        # the selected instances are tinted in the viewer while selecting: the render moves away from the image
+        result["psnr_highlighted"] = viewer_psnr(trainer, clicks[0]["file_path"])
         press_viewer_button(controls.confirm_button)
         wait_until(lambda: pipeline.model.has_templates, what="the fine-tuning stage")
         result["psnr_finetuning"] = viewer_psnr(trainer, clicks[0]["file_path"])
@@ -175,6 +177,7 @@ def test_ns_train_waits_for_the_instance_clicks_in_its_viewer(tmp_path):
     # the replaced scene right after the templates are built is coarser than the base at this tiny budget
     # (17.2-17.7 dB against 27.8 in the runs so far) and fine-tuning brings it back (24.3)
     assert result["lock_free_while_waiting"] and result["psnr_waiting"] > 20 and result["psnr_finetuning"] > 14, result
+    assert result["psnr_highlighted"] < result["psnr_waiting"] - 0.5, result
     assert psnr_end > 20, psnr_end
     assert [i["class"] for i in pipeline.model.instances] == [c["class"] for c in clicks], result["status_after_clicks"]
     gt, ours = gt_masks(pipeline), pipeline.instance_masks_2d.long()
