@@ -66,7 +66,7 @@ class SegmentationConfig:
     min_mask_coverage: float = 0.2
     """Warn about an instance whose selected Gaussians cover less of its rendered masks than this: carving then
     removes the rest of it (tiny scene after 300 + 200 iterations: 2-7 %, and carving takes the training views'
-    PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-82 %)."""
+    PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-88 %)."""
 
 
 @dataclass
