@@ -466,3 +466,30 @@ def test_ns_train_makes_the_masks_of_a_capture_it_reads_downscaled(tmp_path):
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
     # the segmentation stage read each click at its downscaled pixel: every instance was selected
     assert len(trainer.pipeline.segmentation_report["instances"]) == 3, trainer.pipeline.segmentation_report
+
+
+def test_a_clicks_file_written_while_training_waits_for_mask_clicks_makes_the_masks(tmp_path):
+    """Nobody at the viewer: clicks.json written while training waits at the end of the base stage ends the wait;
+    the masks are made from it (and it is kept as written)."""
+    from splatreplace_ns.method.train import make_trainer_config
+
+    scene, capture = tmp_path / "scene", tmp_path / "capture"
+    make_scene("tiny", scene, n_train=12)
+    strip_ground_truth(scene, capture)
+    clicks_text = (capture / "clicks.json").read_text()
+    (capture / "clicks.json").unlink()
+
+    def user(trainer, result) -> None:
+        controls = trainer.pipeline.mask_click_controls
+        wait_until(lambda: controls.connected, what="clicking to open at the end of the base stage")
+        (capture / "clicks.json").write_text(clicks_text)
+
+    trainer, result = train_with_viewer(
+        make_trainer_config(capture, tmp_path / "runs", 300, 100), user,
+        lambda t: [t.pipeline.mask_click_controls._confirmed],
+    )
+    assert "error" not in result, result["error"]
+    assert (capture / "clicks.json").read_text() == clicks_text
+    assert [inst["id"] for inst in trainer.pipeline.masks_report["instances"]] == [1, 2, 3]
+    ious = mask_iou(scene, capture)
+    assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious

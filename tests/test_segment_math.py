@@ -160,3 +160,34 @@ def test_undercovered_instances_are_named_with_their_share():
     messages = undercovered_instances(instances, [0.05, 0.6], min_coverage=0.2)
     assert len(messages) == 1 and messages[0].startswith("instance 1 (chair, 6 Gaussians) covers 5% ")
     assert undercovered_instances(instances, [0.2, 0.6], min_coverage=0.2) == []
+
+
+def test_a_clicks_file_counts_once_it_appears_and_reads(tmp_path):
+    import json
+
+    from splatreplace_ns.segment.clicks import clicks_file_appeared
+
+    path = tmp_path / "clicks.json"
+    appeared = clicks_file_appeared(path)
+    assert not appeared()
+    path.write_text('[{"file_path": "images/0001.png", "xy": [3')  # still being written
+    assert not appeared()
+    path.write_text(json.dumps([{"file_path": "images/0001.png", "xy": [3, 4], "class": "chair"}]))
+    assert appeared()
+    assert not clicks_file_appeared(path)()  # a file there from the start is not a new answer
+
+
+def test_a_wait_for_viewer_clicks_ends_when_asked_and_gives_its_lock_back():
+    import threading
+
+    from splatreplace_ns.viewer.click_controls import ClickControls
+
+    controls = ClickControls("a", "u", "c", "l", "s", "status")
+    lock = threading.Lock()
+    lock.acquire()
+    calls = []
+    assert controls._wait(0.01, lock, stop_when=lambda: calls.append(lock.locked()) or len(calls) > 2) is False
+    assert calls[:2] == [False, False] and lock.locked()  # released while waiting, held again after
+    controls._confirmed.set()
+    assert controls._wait(0.01, lock, stop_when=lambda: True) is True
+    lock.release()

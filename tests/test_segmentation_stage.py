@@ -186,6 +186,32 @@ def test_ns_train_waits_for_the_instance_clicks_in_its_viewer(tmp_path):
     assert min(ious) > 0.5, ious
 
 
+def test_a_clicks_file_written_while_training_waits_in_the_viewer_selects_the_instances(tmp_path):
+    """Nobody at the viewer (a remote machine): clicks.json written while the segmentation stage waits ends the
+    wait, and the instances are selected from it."""
+    data = tmp_path / "tiny"
+    make_scene("tiny", data, n_train=12)
+    clicks_text = (data / "clicks.json").read_text()
+    (data / "clicks.json").unlink()
+    config = make_trainer_config(data, tmp_path / "runs", 300, contrastive_iterations=200)
+    config.pipeline.model.num_downscales = 0
+    config.pipeline.datamanager.contrastive_uniform_samples = 1024
+    config.pipeline.datamanager.contrastive_mask_samples = 512
+
+    def user(trainer, result) -> None:
+        pipeline = trainer.pipeline
+        wait_until(lambda: pipeline.selection is not None and "Select instances" in pipeline.selection_controls.status.value,
+                   what="the selection to open at the end of the contrastive stage")
+        (data / "clicks.json").write_text(clicks_text)
+
+    trainer, result = train_with_viewer(config, user, lambda t: [t.pipeline.selection_controls._confirmed])
+    assert "error" not in result, result["error"]
+    clicks = json.loads(clicks_text)
+    instances = trainer.pipeline.segmentation_report["instances"]
+    assert [i["source"].split(" (")[0] for i in instances] == [f"click {k}" for k in range(len(clicks))], instances
+    assert "clicks.json appeared" in trainer.pipeline.selection_controls.status.value
+
+
 def test_checkpoint_keeps_segmentation(segmented, tmp_path):
     _, config, trainer = segmented
     from nerfstudio.utils.eval_utils import eval_setup

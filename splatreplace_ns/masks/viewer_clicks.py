@@ -261,7 +261,13 @@ class MaskClickControls(ClickControls):
         self._say(f"writing the masks of {len(self.clicks)} instances")
         self._confirmed.set()
 
-    def wait_for_confirm(self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None) -> List[Click]:
-        """Blocks until "Write masks" is pressed; returns the clicks (``held_lock``: see ``ClickControls._wait``)."""
-        self._wait(poll_s, held_lock)
+    def wait_for_confirm(
+        self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None,
+        stop_when: Optional[Callable[[], bool]] = None,
+    ) -> Optional[List[Click]]:
+        """Blocks until "Write masks" is pressed and returns the clicks, or until ``stop_when()`` holds and returns
+        None (see ``ClickControls._wait``, also for ``held_lock``)."""
+        if not self._wait(poll_s, held_lock, stop_when):
+            self._say("clicks.json appeared: the masks are made from it")
+            return None
         return list(self.clicks)

@@ -34,7 +34,7 @@ from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.register.free_space import observed_depth
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
-from splatreplace_ns.segment.clicks import Click, load_clicks
+from splatreplace_ns.segment.clicks import Click, clicks_file_appeared, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
@@ -243,7 +243,8 @@ class SplatReplacePipeline(VanillaPipeline):
     def mask_clicks_from_viewer(self) -> Dict:
         """Waits (training paused, the viewer live) for one click per instance on the base model, checked as
         ``splatreplace masks --viewer`` checks them, and writes them to clicks.json, which then also selects
-        the instances at the end of the contrastive stage. Returns the renders and clustering the clicks were
+        the instances at the end of the contrastive stage; or until a clicks.json is written meanwhile (nobody
+        at the viewer), which is then used instead. Returns the renders and clustering the clicks were
         checked against, for :meth:`make_instance_masks`."""
         from splatreplace_ns.masks.command import mask_click_functions, model_clustering
         from splatreplace_ns.masks.viewer_clicks import render_frames, write_clicks_json
@@ -258,12 +259,18 @@ class SplatReplacePipeline(VanillaPipeline):
             clustering = model_clustering(self.model, command.clustering, frames)
             controls = self.mask_click_controls
             controls.connect(*mask_click_functions(self.model, frames, command, renders, clustering))
-            CONSOLE.log("[bold]In the viewer, press 'Click an instance' and click it, once per instance; then 'Write masks'")
-            clicks = controls.wait_for_confirm(held_lock=self._held_train_lock)
+            CONSOLE.log("[bold]In the viewer, press 'Click an instance' and click it, once per instance; then 'Write "
+                        f"masks' (or write {self.clicks_path()}: the masks are then made from it)")
+            clicks = controls.wait_for_confirm(
+                held_lock=self._held_train_lock, stop_when=clicks_file_appeared(self.clicks_path())
+            )
         finally:
             self.model.train(was_training)
-        write_clicks_json(self.clicks_path(), clicks)
-        CONSOLE.log(f"wrote {len(clicks)} clicks to {self.clicks_path()}")
+        if clicks is None:
+            CONSOLE.log(f"{self.clicks_path()} appeared: the masks are made from its clicks")
+        else:
+            write_clicks_json(self.clicks_path(), clicks)
+            CONSOLE.log(f"wrote {len(clicks)} clicks to {self.clicks_path()}")
         return {"renders": renders, "clustering": clustering}
 
     @torch.no_grad()
@@ -375,10 +382,16 @@ class SplatReplacePipeline(VanillaPipeline):
         self.model.eval()
         self.begin_selection()
         skipped: List[str] = []
+        from_viewer = False
         if self.should_wait_for_viewer():
-            CONSOLE.log("[bold]Click one pixel per instance in the viewer, then press 'Confirm instances'")
-            self.selection_controls.wait_for_confirm(held_lock=self._held_train_lock)
-        else:
+            CONSOLE.log("[bold]Click one pixel per instance in the viewer, then press 'Confirm instances' (or write "
+                        f"{self.clicks_path()}: the instances are then selected from it)")
+            from_viewer = self.selection_controls.wait_for_confirm(
+                held_lock=self._held_train_lock, stop_when=clicks_file_appeared(self.clicks_path())
+            )
+            if not from_viewer:
+                self.begin_selection()  # what was clicked before the file appeared is dropped
+        if not from_viewer:
             path = self.clicks_path()
             if not path.exists():
                 raise FileNotFoundError(

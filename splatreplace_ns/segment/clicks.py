@@ -6,7 +6,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 
 @dataclass(frozen=True)
@@ -55,3 +55,19 @@ def load_clicks(path: Path) -> List[Click]:
     if not clicks:
         raise ValueError(f"{path}: no clicks; give one per instance")
     return clicks
+
+
+def clicks_file_appeared(path: Path) -> Callable[[], bool]:
+    """A check that holds once ``path`` (absent now) exists and reads as at least one click: the way out of a
+    wait for viewer clicks on a machine where nobody opens the viewer."""
+    existed = Path(path).exists()
+
+    def appeared() -> bool:
+        if existed or not Path(path).exists():
+            return False
+        try:
+            return len(load_clicks(path)) > 0
+        except ValueError:  # still being written, or not valid yet
+            return False
+
+    return appeared

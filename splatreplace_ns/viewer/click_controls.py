@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
-from typing import Optional
+from typing import Callable, Optional
 
 from torch import nn
 
@@ -67,15 +67,21 @@ class ClickControls(nn.Module):
     def confirm(self) -> None:
         raise NotImplementedError
 
-    def _wait(self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None) -> None:
-        """Blocks until confirmed. ``held_lock``, a lock this thread holds (the training thread holds the
-        trainer's ``train_lock`` during its callbacks), is released meanwhile: the viewer renders, and runs its
-        buttons' callbacks, only under it."""
+    def _wait(
+        self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None,
+        stop_when: Optional[Callable[[], bool]] = None,
+    ) -> bool:
+        """Blocks until confirmed (returns True) or until ``stop_when()`` holds (checked every ``poll_s``; returns
+        False). ``held_lock``, a lock this thread holds (the training thread holds the trainer's ``train_lock``
+        during its callbacks), is released meanwhile: the viewer renders, and runs its buttons' callbacks, only
+        under it."""
         if held_lock is not None:
             held_lock.release()
         try:
             while not self._confirmed.wait(poll_s):
-                pass
+                if stop_when is not None and stop_when():
+                    return False
+            return True
         finally:
             if held_lock is not None:
                 held_lock.acquire()

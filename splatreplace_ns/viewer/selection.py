@@ -8,7 +8,7 @@ owns an instance of this; nerfstudio's viewer finds the elements on it.
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import torch
 
@@ -79,9 +79,16 @@ class InstanceSelectionControls(ClickControls):
         self._say(f"confirmed {len(selection.instances)} instances; training continues")
         self._confirmed.set()
 
-    def wait_for_confirm(self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None) -> None:
-        """Blocks the training thread until "Confirm instances" is pressed (``held_lock``: see ``_wait``)."""
+    def wait_for_confirm(
+        self, poll_s: float = 0.2, held_lock: Optional[threading.Lock] = None,
+        stop_when: Optional[Callable[[], bool]] = None,
+    ) -> bool:
+        """Blocks the training thread until "Confirm instances" is pressed (True) or ``stop_when()`` holds
+        (False; see ``_wait``, also for ``held_lock``)."""
         self._confirmed.clear()
         self._say("click 'Select instances', then one pixel per instance; 'Confirm instances' when done")
-        self._wait(poll_s, held_lock)
+        confirmed = self._wait(poll_s, held_lock, stop_when)
         self._owner.model.highlight = None
+        if not confirmed:
+            self._say("clicks.json appeared: the instances are selected from it")
+        return confirmed
