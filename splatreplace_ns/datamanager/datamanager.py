@@ -78,14 +78,18 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
             for key in keys_here:
                 data[key] = remap_nearest(data[key], maps).to(data[key].device)
 
+    @property
+    def image_downscale(self) -> int:
+        """The factor nerfstudio's dataparser scaled the images and cameras down by (it reads ``images_<f>/``)."""
+        return int(getattr(self.dataparser, "downscale_factor", None) or 1)
+
     def train_pixel(self, index: int, xy: Tuple[float, float]) -> Tuple[float, float]:
         """A pixel of training image ``index`` as stored (a click of clicks.json) → the same ray's pixel in the
         image as cached: read from ``images_<f>/`` when nerfstudio downscales the images by f, then undistorted
         and cropped when the camera has distortion."""
         _ = self.cached_train  # caching is where nerfstudio undistorts, and where the captured cameras are kept
-        downscale = int(getattr(self.dataparser, "downscale_factor", None) or 1)
-        if downscale > 1:
-            xy = resized_pixel(xy, 1.0 / downscale)
+        if self.image_downscale > 1:
+            xy = resized_pixel(xy, 1.0 / self.image_downscale)
         captured = self.captured_cameras["train"]
         if captured.distortion is None or not bool(captured.distortion[index].any()):
             return float(xy[0]), float(xy[1])

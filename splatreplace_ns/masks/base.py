@@ -145,12 +145,7 @@ class BaseModel:
     @property
     def downscale(self) -> int:
         """nerfstudio's image downscale factor in this run (1 without a pipeline)."""
-        return image_downscale(self.pipeline.datamanager) if self.pipeline is not None else 1
-
-
-def image_downscale(datamanager) -> int:
-    """The factor nerfstudio's dataparser scaled this run's images and cameras down by (``images_<f>/``)."""
-    return int(getattr(datamanager.dataparser, "downscale_factor", None) or 1)
+        return self.pipeline.datamanager.image_downscale if self.pipeline is not None else 1
 
 
 def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: Optional[str] = None) -> BaseModel:

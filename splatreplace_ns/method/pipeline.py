@@ -197,14 +197,14 @@ class SplatReplacePipeline(VanillaPipeline):
     def _check_clicks_for_masks(self) -> None:
         """A capture without masks needs clicks to make them (clicks.json, or the viewer when the base stage
         ends); say so before the base stage trains."""
-        from splatreplace_ns.masks.base import frame_cameras, image_downscale
+        from splatreplace_ns.masks.base import frame_cameras
         from splatreplace_ns.masks.viewer_clicks import MaskClickControls
 
         data = self.transforms_path().parent
         # cameras the masks cannot be rendered for (fisheye) would otherwise stop the run after the base stage
         outputs = self.datamanager.train_dataparser_outputs
         frame_cameras(self.transforms_path(), outputs.dataparser_transform, outputs.dataparser_scale,
-                      image_downscale(self.datamanager))
+                      self.datamanager.image_downscale)
         if not self.clicks_path().exists():
             if self.config.segmentation.interactive == "never":
                 raise ValueError(self._no_clicks_message())
@@ -231,12 +231,12 @@ class SplatReplacePipeline(VanillaPipeline):
 
     def _mask_inputs(self):
         """The frames of the capture and the masks' options (the pipeline's ``masks`` config)."""
-        from splatreplace_ns.masks.base import frame_cameras, image_downscale
+        from splatreplace_ns.masks.base import frame_cameras
 
         transforms = self.transforms_path()
         outputs = self.datamanager.train_dataparser_outputs
         frames = frame_cameras(transforms, outputs.dataparser_transform, outputs.dataparser_scale,
-                               image_downscale(self.datamanager))
+                               self.datamanager.image_downscale)
         return frames, self.config.masks.command(transforms.parent, self.clicks_path(), self.config.segmentation.min_alpha)
 
     @torch.no_grad()
