@@ -493,3 +493,20 @@ def test_a_clicks_file_written_while_training_waits_for_mask_clicks_makes_the_ma
     assert [inst["id"] for inst in trainer.pipeline.masks_report["instances"]] == [1, 2, 3]
     ious = mask_iou(scene, capture)
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
+
+
+def test_masks_made_from_other_clicks_are_made_again(base_run, tmp_path):
+    """Masks written from clicks record which clicks made them; when clicks.json changes afterwards (a missed
+    instance added), ns-train makes them again after the base stage instead of training on the old instances."""
+    from splatreplace_ns.method.train import make_trainer_config, setup_trainer
+    from splatreplace_ns.segment.clicks import clicks_digest, load_clicks
+
+    scene, capture, report = base_run
+    data = tmp_path / "capture"
+    shutil.copytree(capture, data)
+    meta = json.loads((data / "transforms.json").read_text())
+    assert meta["instance_masks_clicks"] == clicks_digest(load_clicks(data / "clicks.json"))
+    assert not setup_trainer(make_trainer_config(data, tmp_path / "runs", 10, 10)).pipeline._masks_stale
+    clicks = json.loads((data / "clicks.json").read_text())
+    (data / "clicks.json").write_text(json.dumps(clicks[:2]))  # one instance fewer
+    assert setup_trainer(make_trainer_config(data, tmp_path / "runs", 10, 10)).pipeline._masks_stale

@@ -41,7 +41,7 @@ from splatreplace_ns.masks.viewer_clicks import (
     write_clicks_json,
 )
 from splatreplace_ns.masks.writer import write_dataset_masks
-from splatreplace_ns.segment.clicks import Click, load_clicks
+from splatreplace_ns.segment.clicks import Click, clicks_digest, load_clicks
 
 
 @dataclass
@@ -401,7 +401,7 @@ def make_masks(cfg: MasksCommand) -> Dict:
         clicks = clicks_from_viewer(base, frames, cfg, renders, clustering)
         t0 += time.perf_counter() - viewer_start  # the time spent clicking is not the masks' time
     masks, instances, made = masks_from_model(model, frames, clicks, cfg, clustering, renders, sam)
-    write_dataset_masks(data, masks, instances)
+    write_dataset_masks(data, masks, instances, clicks_digest(clicks))
     return {
         **made,
         "frames": len(masks),

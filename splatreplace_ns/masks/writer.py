@@ -15,6 +15,8 @@ BACKUP_SUFFIX = ".before-masks"
 MASKS_SOURCE_KEY = "instance_masks_source"
 """transforms.json key saying where the instance masks come from: ``"clicks"`` (written here, from one click per
 instance and the base model) or ``"ground_truth"`` (the default when absent: a synthetic scene's, or a person's)."""
+CLICKS_DIGEST_KEY = "instance_masks_clicks"
+"""transforms.json key: the fingerprint (``segment.clicks.clicks_digest``) of the clicks the masks were made from."""
 
 
 def mask_path(frame_index: int) -> str:
@@ -38,7 +40,7 @@ def encode_mask(mask: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
-def updated_transforms(meta: Dict, mask_paths: Sequence[str], instances: List[Dict]) -> Dict:
+def updated_transforms(meta: Dict, mask_paths: Sequence[str], instances: List[Dict], clicks_digest: str = "") -> Dict:
     """``meta`` with ``frames[i].instance_mask_path``, ``instances`` and ``instance_masks_source`` set (other keys and
     their order kept).
 
@@ -51,10 +53,13 @@ def updated_transforms(meta: Dict, mask_paths: Sequence[str], instances: List[Di
         frame["instance_mask_path"] = path
     out["instances"] = instances
     out[MASKS_SOURCE_KEY] = "clicks"  # ns-eval must not score a segmentation against masks made from it
+    out.pop(CLICKS_DIGEST_KEY, None)
+    if clicks_digest:  # which clicks made them: ns-train remakes them when clicks.json has changed since
+        out[CLICKS_DIGEST_KEY] = clicks_digest
     return out
 
 
-def write_dataset_masks(data: Path, masks: Sequence[np.ndarray], instances: List[Dict]) -> Path:
+def write_dataset_masks(data: Path, masks: Sequence[np.ndarray], instances: List[Dict], clicks_digest: str = "") -> Path:
     """Writes ``masks/NNNN.png`` for every frame and points ``transforms.json`` at them.
 
     The first run keeps the original as ``transforms.json.before-masks``; each file is written to a
@@ -64,6 +69,7 @@ def write_dataset_masks(data: Path, masks: Sequence[np.ndarray], instances: List
         data: dataset folder holding transforms.json.
         masks: one [H, W] uint16 mask per frame, in ``frames`` order.
         instances: ``[{"id", "class"}, ...]``.
+        clicks_digest: fingerprint of the clicks the masks were made from (recorded when given).
 
     Returns:
         the path of the written transforms.json.
@@ -72,7 +78,7 @@ def write_dataset_masks(data: Path, masks: Sequence[np.ndarray], instances: List
     raw = transforms.read_bytes()
     meta = json.loads(raw)
     paths = [mask_path(i) for i in range(len(meta["frames"]))]
-    new_meta = updated_transforms(meta, paths, instances)
+    new_meta = updated_transforms(meta, paths, instances, clicks_digest)
     backup = transforms.with_name(transforms.name + BACKUP_SUFFIX)
     if not backup.exists():
         shutil.copy2(transforms, backup)

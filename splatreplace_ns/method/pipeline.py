@@ -13,6 +13,7 @@ per-instance SH offsets and poses, and the background.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +35,7 @@ from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.register.free_space import observed_depth
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
-from splatreplace_ns.segment.clicks import Click, clicks_file_appeared, load_clicks
+from splatreplace_ns.segment.clicks import Click, clicks_digest, clicks_file_appeared, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
@@ -109,8 +110,11 @@ class SplatReplacePipeline(VanillaPipeline):
         self._train_lock = None  # the trainer's; held by the training thread through each step and its callbacks
         self._mask_clicks_from_viewer = False
         self._in_training_callback = False
-        if self.test_mode == "val" and self.config.contrastive_iterations > 0 and not self.datamanager.has_instance_masks:
-            self._check_clicks_for_masks()
+        self._masks_stale = False
+        if self.test_mode == "val" and self.config.contrastive_iterations > 0:
+            self._masks_stale = self._masks_made_from_other_clicks()
+            if not self.datamanager.has_instance_masks or self._masks_stale:
+                self._check_clicks_for_masks()
 
     def load_pipeline(self, loaded_state: Dict, step: int) -> None:
         super().load_pipeline(loaded_state, step)
@@ -162,7 +166,7 @@ class SplatReplacePipeline(VanillaPipeline):
             return
         self._in_training_callback = True  # the trainer runs its callbacks under its train_lock
         try:
-            if step == self.config.base_iterations - 1 and not self.datamanager.has_instance_masks:
+            if step == self.config.base_iterations - 1 and (not self.datamanager.has_instance_masks or self._masks_stale):
                 if self._mask_clicks_from_viewer and not self.clicks_path().exists():
                     self.make_instance_masks(**self.mask_clicks_from_viewer())
                 else:
@@ -182,6 +186,26 @@ class SplatReplacePipeline(VanillaPipeline):
     def transforms_path(self) -> Path:
         data = Path(self.datamanager.get_datapath())
         return data if data.suffix == ".json" else data / "transforms.json"
+
+    def _masks_made_from_other_clicks(self) -> bool:
+        """Whether the dataset's masks were made (``splatreplace masks`` or an earlier run) from clicks other than
+        those of clicks.json now: then they are made again after the base stage, or the contrastive stage would
+        train on the old instances while the new clicks select."""
+        from splatreplace_ns.masks.writer import CLICKS_DIGEST_KEY
+
+        if not self.datamanager.has_instance_masks or not self.clicks_path().exists():
+            return False
+        meta = json.loads(self.transforms_path().read_text())
+        made_from = meta.get(CLICKS_DIGEST_KEY)
+        if meta.get("instance_masks_source") != "clicks" or not made_from:
+            return False
+        if clicks_digest(load_clicks(self.clicks_path())) == made_from:
+            return False
+        CONSOLE.log(
+            f"[bold yellow]{self.clicks_path()} has changed since the instance masks were made from it: they will be "
+            "made again from it after the base stage"
+        )
+        return True
 
     def _no_clicks_message(self) -> str:
         data = self.transforms_path().parent
@@ -227,7 +251,8 @@ class SplatReplacePipeline(VanillaPipeline):
                     "train_filenames in transforms.json nerfstudio holds out every tenth image for evaluation); "
                     "click the instance in another image"
                 )
-        CONSOLE.log(f"{data} has no instance masks: they will be made from {self.clicks_path()} after the base stage")
+        if not self._masks_stale:
+            CONSOLE.log(f"{data} has no instance masks: they will be made from {self.clicks_path()} after the base stage")
 
     def _mask_inputs(self):
         """The frames of the capture and the masks' options (the pipeline's ``masks`` config)."""
@@ -287,13 +312,13 @@ class SplatReplacePipeline(VanillaPipeline):
         frames, command = self._mask_inputs()
         was_training = self.model.training
         self.model.eval()
+        clicks = load_clicks(self.clicks_path())
         try:
-            masks, instances, report = masks_from_model(
-                self.model, frames, load_clicks(self.clicks_path()), command, clustering, renders
-            )
+            masks, instances, report = masks_from_model(self.model, frames, clicks, command, clustering, renders)
         finally:
             self.model.train(was_training)
-        write_dataset_masks(transforms.parent, masks, instances)
+        write_dataset_masks(transforms.parent, masks, instances, clicks_digest(clicks))
+        self._masks_stale = False
         self.datamanager.reload_instance_masks()
         for message in report["skipped_clicks"]:
             CONSOLE.log(f"[bold yellow]masks: skipped {message}")

@@ -71,3 +71,12 @@ def clicks_file_appeared(path: Path) -> Callable[[], bool]:
             return False
 
     return appeared
+
+
+def clicks_digest(clicks: List[Click]) -> str:
+    """A short fingerprint of a list of clicks (file, pixel, class, in order): masks made from clicks record it,
+    so that a clicks.json changed since can be told apart."""
+    import hashlib
+
+    canonical = json.dumps([[Path(c.file_path).name, [round(float(v), 2) for v in c.xy], c.cls] for c in clicks])
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
