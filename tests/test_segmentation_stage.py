@@ -220,6 +220,9 @@ def test_checkpoint_keeps_segmentation(segmented, tmp_path):
     assert pipeline.model.stage == "segmented"
     assert len(pipeline.model.instances) == 3
     assert pipeline.model.instance_labels.shape == (pipeline.model.num_points,)
+    # what the viewer's "Select instances" panel shows for a loaded run (ns-viewer)
+    controls = pipeline.selection_controls
+    assert controls.listing.value.count(": crate (") == 3 and controls.status.value.startswith("3 instances were selected")
 
 
 def test_depth_loss_used_when_frames_carry_depth(segmented):

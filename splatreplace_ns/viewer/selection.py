@@ -35,10 +35,19 @@ class InstanceSelectionControls(ClickControls):
         # its GUI elements, and a public way back to the pipeline sends that walk round in a circle
         return self._pipeline[0]
 
+    @staticmethod
+    def _listing(items) -> str:
+        return "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
+
+    def show_selected(self, instances) -> None:
+        """A run loaded after its segmentation (``ns-viewer``, a resumed run): its instances, listed."""
+        self.listing.value = self._listing(instances)
+        self._say(f"{len(instances)} instances were selected when this run was trained")
+
     def _refresh(self) -> None:
         selection = self._owner.selection
         items = selection.summary() if selection else []
-        self.listing.value = "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
+        self.listing.value = self._listing(items)
         model = self._owner.model
         model.highlight = (selection.labels() > 0) if (selection and items) else None
 
