@@ -37,7 +37,11 @@ class InstanceSelectionControls(ClickControls):
 
     @staticmethod
     def _listing(items) -> str:
-        return "; ".join(f"{i['id']}: {i['class']} ({i['num_gaussians']} G)" for i in items) or "(none)"
+        # instances labelled otherwise than by clicks (ground truth) carry no Gaussian count
+        return "; ".join(
+            f"{i['id']}: {i.get('class', 'object')}" + (f" ({i['num_gaussians']} G)" if "num_gaussians" in i else "")
+            for i in items
+        ) or "(none)"
 
     def show_selected(self, instances) -> None:
         """A run loaded after its segmentation (``ns-viewer``, a resumed run): its instances, listed."""
