@@ -289,7 +289,7 @@ def _rasterize_torch(
 
 
 def _rasterize_gsplat(
-    means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, bg, near, far
+    means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, bg, near, far, absgrad=False
 ) -> RenderOutput:
     try:
         from gsplat import rasterization
