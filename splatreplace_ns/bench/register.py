@@ -313,10 +313,10 @@ def ground_truth_instances(pipeline) -> Dict[int, GroundTruthInstance]:
 
 def training_views(pipeline) -> Tuple[torch.Tensor, torch.Tensor, int, int]:
     """World→camera (OpenCV) matrices [V, 4, 4], intrinsics [V, 3, 3] and (W, H) of the training cameras."""
-    from nerfstudio.models.splatfacto import get_viewmat
+    from splatreplace_ns.render.cameras import world_to_camera
 
     cameras = pipeline.datamanager.train_dataset.cameras
-    viewmats = get_viewmat(cameras.camera_to_worlds.float()).detach().cpu()
+    viewmats = world_to_camera(cameras.camera_to_worlds.float()).detach().cpu()
     Ks = cameras.get_intrinsics_matrices().float().cpu()
     return viewmats, Ks, int(cameras.width[0]), int(cameras.height[0])
 

@@ -159,10 +159,10 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         Returns:
             viewmats [V, 4, 4], Ks [V, 3, 3] (CPU, float32).
         """
-        from nerfstudio.models.splatfacto import get_viewmat
+        from splatreplace_ns.render.cameras import world_to_camera
 
         cameras = self.train_dataset.cameras
-        viewmats = get_viewmat(cameras.camera_to_worlds.float())
+        viewmats = world_to_camera(cameras.camera_to_worlds.float())
         Ks = cameras.get_intrinsics_matrices().float().clone()
         Ks[:, 0] *= width / cameras.width.float().reshape(-1, 1)
         Ks[:, 1] *= height / cameras.height.float().reshape(-1, 1)

@@ -13,7 +13,7 @@ from typing import Optional, Tuple
 import torch
 
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.models.splatfacto import get_viewmat
+from splatreplace_ns.render.cameras import world_to_camera
 
 from splatreplace_ns.segment.clicks import pixel_index
 
@@ -40,7 +40,7 @@ class LiftedClick:
 
 def view_and_intrinsics(camera: Cameras) -> Tuple[torch.Tensor, torch.Tensor, int, int]:
     """World→camera (OpenCV) [4, 4], K [3, 3], width, height of a one-camera ``Cameras``."""
-    viewmat = get_viewmat(camera.camera_to_worlds.reshape(1, 3, 4))[0]
+    viewmat = world_to_camera(camera.camera_to_worlds.reshape(1, 3, 4))[0]
     K = camera.get_intrinsics_matrices().reshape(3, 3)
     return viewmat, K, int(camera.width.reshape(-1)[0]), int(camera.height.reshape(-1)[0])
 

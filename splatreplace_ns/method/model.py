@@ -24,7 +24,6 @@ from nerfstudio.models.splatfacto import (
     RGB2SH,
     SplatfactoModel,
     SplatfactoModelConfig,
-    get_viewmat,
     num_sh_bases,
     random_quat_tensor,
 )
@@ -36,7 +35,7 @@ from splatreplace_ns.eval.metrics import ssim as image_ssim
 from splatreplace_ns.eval.perceptual import LocalLPIPS
 from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
 from splatreplace_ns.method.sky import pixel_directions, sky_colour, sky_opacity_l1
-from splatreplace_ns.render import rasterize, resolve_backend
+from splatreplace_ns.render import rasterize, resolve_backend, world_to_camera
 from splatreplace_ns.template.build import InstanceTable
 from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses, offsets_l1
 
@@ -424,7 +423,7 @@ class SplatReplaceModel(SplatfactoModel):
             features [H, W, D], alpha [H, W, 1], depth [H, W, 1].
         """
         features = self.features_contrastive if features is None else features
-        viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
+        viewmat = world_to_camera(camera.camera_to_worlds.to(self.device))[0]
         K = camera.get_intrinsics_matrices()[0].to(self.device)
         means, quats, scales, opacities = self.means, self.quats, self.scales, self.opacities
         if self.has_templates:  # the replaced scene; each rendered Gaussian carries its stored one's feature
@@ -461,7 +460,7 @@ class SplatReplaceModel(SplatfactoModel):
         if scene is None:
             image, alpha, _ = self.render_features(camera, one_hot)
         else:
-            viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
+            viewmat = world_to_camera(camera.camera_to_worlds.to(self.device))[0]
             K = camera.get_intrinsics_matrices()[0].to(self.device)
             out = rasterize(scene.means, scene.quats, torch.exp(scene.log_scales),
                             torch.sigmoid(scene.logit_opacities).reshape(-1), one_hot, viewmat, K,
@@ -505,7 +504,7 @@ class SplatReplaceModel(SplatfactoModel):
 
         scale_factor = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / scale_factor)
-        viewmat = get_viewmat(camera_to_world)[0]
+        viewmat = world_to_camera(camera_to_world)[0]
         K = camera.get_intrinsics_matrices()[0].to(self.device)
         W, H = int(camera.width.item()), int(camera.height.item())
         self.last_size = (H, W)

@@ -25,7 +25,6 @@ from gsplat.strategy.ops import remove as remove_gaussians
 
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.models.splatfacto import get_viewmat
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -33,6 +32,7 @@ from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfi
 from splatreplace_ns.masks.command import ClickMasksConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.register.free_space import observed_depth
+from splatreplace_ns.render import world_to_camera
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.segment.clicks import Click, clicks_digest, clicks_file_appeared, load_clicks
@@ -466,7 +466,7 @@ class SplatReplacePipeline(VanillaPipeline):
         background = labels == 0
         removed = 0
         if cfg.carve and bool(background.any()):
-            viewmats = get_viewmat(cameras.camera_to_worlds.to(self.device))
+            viewmats = world_to_camera(cameras.camera_to_worlds.to(self.device))
             Ks = cameras.get_intrinsics_matrices().to(self.device)
             carve = carve_mask(
                 model.means.detach()[background], viewmats, Ks, int(cameras.width[0]), int(cameras.height[0]),

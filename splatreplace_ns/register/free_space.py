@@ -99,13 +99,13 @@ def observed_depth(render_depth, cameras, max_views: int = 64, max_width: int = 
         max_views: most views kept (evenly spaced).
         max_width: most depth-map columns kept.
     """
-    from nerfstudio.models.splatfacto import get_viewmat
+    from splatreplace_ns.render.cameras import world_to_camera
 
     n = len(cameras)
     if n == 0:
         return ObservedDepth(np.zeros((0, 4, 4)), np.zeros((0, 3, 3)), [])
     keep = np.unique(np.linspace(0, n - 1, num=min(n, max_views)).round().astype(int))
-    viewmats = get_viewmat(cameras.camera_to_worlds[keep].float()).cpu().numpy()
+    viewmats = world_to_camera(cameras.camera_to_worlds[keep].float()).cpu().numpy()
     Ks_full = cameras.get_intrinsics_matrices()[keep].float().cpu().numpy()
     depths, Ks = [], []
     for k, idx in enumerate(keep):

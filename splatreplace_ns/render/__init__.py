@@ -2,6 +2,7 @@
 GPU, autograd backward) with gsplat's conventions, plus a gsplat (CUDA)
 backend behind the same interface."""
 
+from .cameras import world_to_camera
 from .projection import ProjectedGaussians, project_gaussians, quat_to_rotmat
 from .rasterize import BACKEND_ENV_VAR, RenderOutput, rasterize, resolve_backend
 from .sh import sh_to_color, spherical_harmonics
@@ -16,4 +17,5 @@ __all__ = [
     "resolve_backend",
     "sh_to_color",
     "spherical_harmonics",
+    "world_to_camera",
 ]
