@@ -16,7 +16,10 @@ they can use rtol 1e-5.
 
 from __future__ import annotations
 
+import importlib
 import math
+import sys
+import types
 
 import pytest
 import torch
@@ -520,6 +523,8 @@ def test_means2d_retain_grad_and_info_dict():
 def test_backend_selection(monkeypatch):
     cpu = torch.device("cpu")
     monkeypatch.delenv(BACKEND_ENV_VAR, raising=False)
+    rasterize_module = importlib.import_module("splatreplace_ns.render.rasterize")
+    monkeypatch.setattr(rasterize_module, "gsplat_unavailable_reason", lambda: None)  # as on a CUDA machine
     assert resolve_backend("auto", cpu) == "torch"
     assert resolve_backend("torch", cpu) == "torch"
     with pytest.raises(RuntimeError, match="CUDA"):
@@ -542,13 +547,38 @@ def test_backend_selection(monkeypatch):
         rasterize(*args, backend="gsplat")
 
 
+def test_gsplat_without_its_kernels_falls_back_to_torch_or_says_why(monkeypatch):
+    """gsplat imports without a CUDA toolkit (its extension left unset) and failed only at the first render,
+    mid-run. 'auto' must fall back to the torch path with a warning that says why, 'gsplat' must refuse."""
+    rasterize_module = importlib.import_module("splatreplace_ns.render.rasterize")
+    cuda = torch.device("cuda")
+    monkeypatch.delenv(BACKEND_ENV_VAR, raising=False)
+    for backend_module, expected in (
+        (types.SimpleNamespace(_C=None), "no CUDA toolkit"),  # what gsplat 1.4 leaves without nvcc
+        (None, "could not be built or loaded"),  # the import itself fails (a failed build, no gsplat)
+    ):
+        rasterize_module.gsplat_unavailable_reason.cache_clear()
+        rasterize_module._warn_torch_fallback.cache_clear()
+        monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend_module)
+        assert expected in rasterize_module.gsplat_unavailable_reason()
+        with pytest.warns(RuntimeWarning, match=expected):
+            assert resolve_backend("auto", cuda) == "torch"
+        with pytest.raises(RuntimeError, match=expected):
+            resolve_backend("gsplat", cuda)
+        assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    rasterize_module.gsplat_unavailable_reason.cache_clear()
+    rasterize_module._warn_torch_fallback.cache_clear()
+    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", types.SimpleNamespace(_C=object()))
+    assert rasterize_module.gsplat_unavailable_reason() is None
+    assert resolve_backend("auto", cuda) == "gsplat"
+    rasterize_module.gsplat_unavailable_reason.cache_clear()
+
+
 def test_gsplat_call_and_unpacking_on_cpu(monkeypatch):
     """The gsplat branch's contract with ``gsplat.rasterization`` (1.4): what it asks for (classic mode, RGB+ED,
     absgrad passed through, zero quaternions guarded, background per camera) and how it unpacks the result.
     A stand-in renders with the torch path in gsplat's output layout, so the unpacked image, depth and alpha
     must equal the torch backend's."""
-    import importlib
-
     import gsplat
 
     # the package exports the function under the submodule's name, so import the module by path
