@@ -265,3 +265,22 @@ def test_scene_from_an_older_generator_is_made_again(tmp_path):
     assert not is_current_scene(data) and not is_current_scene(tmp_path / "missing")
     cached_scene("temple", "48x36", 8, 1, tmp_path)
     assert is_current_scene(data) and _meta(meta_path)["depth_zero"] == "far"
+
+
+def test_click_in_the_middle_of_a_column_not_at_its_capital():
+    """A column: a 5 px shaft with 9 px wide plinth and capital, cut by the top edge of the frame. Its deepest
+    pixels tie along the plinth and capital; a person clicks the middle of the shaft."""
+    from splatreplace_ns.sim.writer import choose_click_view, click_candidates
+
+    ids = np.zeros((60, 40), np.uint16)
+    ids[0:6, 10:19] = 3  # capital at the frame's top edge
+    ids[6:54, 12:17] = 3  # shaft
+    ids[54:60, 10:19] = 3  # plinth
+    dist, area, u, v = click_candidates(ids)[3]
+    assert area == int((ids == 3).sum()) and dist >= 2.5
+    assert 12 <= u < 17 and 20 <= v <= 40, (u, v)  # on the shaft, near its middle
+    inside = np.pad((ids == 3).astype(np.uint8), 1)
+    assert cv2.distanceTransform(inside, cv2.DIST_L2, 5)[v + 1, u + 1] >= max(0.5 * dist, 2.0)
+    # views: equally deep ones → the one that shows most of the instance; a clearly deeper one wins
+    assert choose_click_view({0: (3.0, 100, 1, 1), 4: (3.2, 400, 2, 2), 7: (2.0, 900, 3, 3)}) == 4
+    assert choose_click_view({0: (6.0, 100, 1, 1), 4: (3.2, 400, 2, 2)}) == 0

@@ -9,7 +9,7 @@ holds (world frame: z up, ground plane z = 0, metres):
   ``val_filenames`` (= test) and ``test_filenames``; ``instances`` (id, class, object→world
   ``transform_matrix``, symmetry about the object's z axis); ``sim`` (preset, seed, effects, statistics).
 - ``clicks.json``: one ``{"file_path", "xy": [u, v], "class", "id"}`` per instance; (u, v) = (column, row) of
-  the pixel deepest inside the instance over all training views.
+  the middle of the instance (well inside its outline) in the training view that shows it best.
 - ``points3d.ply``: SfM-like coloured, noisy surface samples from the training views.
 - ``images/``, ``masks/``, ``depth/`` and ``contact_sheet.png``.
 

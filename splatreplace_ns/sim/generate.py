@@ -27,7 +27,8 @@ from splatreplace_ns.sim.scene import instances_json
 from splatreplace_ns.sim.writer import (
     DEPTH_SCALE,
     contact_sheet,
-    deepest_pixels,
+    choose_click_view,
+    click_candidates,
     depth_to_u16,
     write_json,
     write_ply,
@@ -35,7 +36,7 @@ from splatreplace_ns.sim.writer import (
     write_u16,
 )
 
-GENERATOR_VERSION = 2  # 2: open-sky scenes' transforms.json says depth 0 is far (the sky)
+GENERATOR_VERSION = 3  # 2: open-sky scenes' transforms.json says depth 0 is far (the sky); 3: clicks in the middle
 _SUBDIRS = ("images", "masks", "depth")
 _STREAM_CAMERAS, _STREAM_POINTS = 1, 2  # stream 0 is the layout (Preset.layout)
 _POINT_VOXEL = 0.015  # metres; SfM-like points are thinned to one per voxel
@@ -103,7 +104,7 @@ def _render_frames(
         seed: dataset seed (point noise is drawn from (seed, stream, frame index)).
         n_points: SfM-like samples drawn per training view.
     Returns:
-        per frame: (index, deepest-pixel dict (training views; else {}), (xyz, rgb) samples or None).
+        per frame: (index, click candidates (training views; else {}), (xyz, rgb) samples or None).
     """
     results = []
     for index, cam, is_train in jobs:
@@ -114,7 +115,7 @@ def _render_frames(
         write_u16(out / "depth" / name, depth_to_u16(frame.depth))
         if is_train:
             samples = _sample_points(frame, np.random.default_rng([seed, _STREAM_POINTS, index]), n_points)
-            results.append((index, deepest_pixels(frame.ids), samples))
+            results.append((index, click_candidates(frame.ids), samples))
         else:
             results.append((index, {}, None))
     return results
@@ -150,8 +151,8 @@ def _render_all(
     results: dict[int, tuple[dict, Optional[tuple[np.ndarray, np.ndarray]]]] = {}
 
     def collect(batch: list[FrameResult]) -> None:
-        for index, deepest, samples in batch:
-            results[index] = (deepest, samples)
+        for index, candidates, samples in batch:
+            results[index] = (candidates, samples)
         if progress is not None:
             progress(len(results), total)
 
@@ -259,20 +260,20 @@ def make_scene(
     names = [f"images/{_frame_name(i)}" for i in range(total)]
     train_names, test_names = names[:n_train], names[n_train:]
 
-    # clicks: for each instance, the training view where it lies deepest inside its mask
-    best: dict[int, tuple[float, int, int, int]] = {}
+    # clicks: for each instance, the middle of it in the training view that shows it best (click_candidates)
+    per_instance: dict[int, dict[int, tuple[float, int, int, int]]] = {}
     for i in range(n_train):
-        for k, (dist, u, v) in results[i][0].items():
-            if k not in best or dist > best[k][0]:
-                best[k] = (dist, i, u, v)
+        for k, candidate in results[i][0].items():
+            per_instance.setdefault(k, {})[i] = candidate
     clicks = []
     for inst in scene.instances:
-        if inst.id not in best:
+        if inst.id not in per_instance:
             raise ValueError(
                 f"preset {p.name!r}, seed {seed}: instance {inst.id} ({inst.cls}) is never visible in the "
                 f"{n_train} training views; use more training views"
             )
-        _, i, u, v = best[inst.id]
+        i = choose_click_view(per_instance[inst.id])
+        _, _, u, v = per_instance[inst.id][i]
         clicks.append({"file_path": names[i], "xy": [u, v], "class": inst.cls, "id": inst.id})
 
     xyz = np.concatenate([results[i][1][0] for i in range(n_train)])

@@ -106,13 +106,19 @@ def contact_sheet(
     return sheet
 
 
-def deepest_pixels(ids: np.ndarray) -> dict[int, tuple[float, int, int]]:
-    """For every instance in a mask, the pixel farthest from its mask's boundary (image border included).
+def click_candidates(ids: np.ndarray) -> dict[int, tuple[float, int, int, int]]:
+    """For every instance in a mask, where a person would click it in this view: near the middle of what is
+    seen of it, well inside its outline.
+
+    The pixel is the one nearest the mask's centroid among those at least half the mask's largest inscribed
+    distance (and at least 2 px, where it has such pixels) away from its boundary (image border included). The deepest pixel alone picks, for thin objects
+    whose inscribed distance ties along their length, the first tie in raster order: a column's capital at the
+    top edge of the frame instead of its shaft.
 
     Args:
         ids: (H, W) uint16 instance mask.
     Returns:
-        {id: (distance in pixels, u, v)} for each id > 0 present.
+        {id: (largest inscribed distance in pixels, mask area in pixels, u, v)} for each id > 0 present.
     """
     out = {}
     for k in np.unique(ids):
@@ -123,7 +129,24 @@ def deepest_pixels(ids: np.ndarray) -> dict[int, tuple[float, int, int]]:
         crop = np.zeros((v1 - v0 + 2, u1 - u0 + 2), dtype=np.uint8)
         crop[1:-1, 1:-1] = ids[v0:v1, u0:u1] == k
         dist = cv2.distanceTransform(crop, cv2.DIST_L2, 5)
-        flat = int(np.argmax(dist))
-        dv, du = divmod(flat, dist.shape[1])
-        out[int(k)] = (float(dist[dv, du]), int(u0 + du - 1), int(v0 + dv - 1))
+        # well inside: half the deepest distance, but at least 2 px where the mask allows it
+        inside_v, inside_u = np.nonzero(dist >= min(float(dist.max()), max(0.5 * float(dist.max()), 2.0)))
+        centre_v, centre_u = vs.mean() - v0 + 1, us.mean() - u0 + 1
+        j = int(np.argmin((inside_v - centre_v) ** 2 + (inside_u - centre_u) ** 2))
+        out[int(k)] = (float(dist.max()), int(len(vs)), int(u0 + inside_u[j] - 1), int(v0 + inside_v[j] - 1))
     return out
+
+
+def choose_click_view(candidates: dict[int, tuple[float, int, int, int]], tolerance: float = 0.5) -> int:
+    """The view to click an instance in: among the views where it lies (nearly) deepest inside its mask, the one
+    that shows most of it.
+
+    Args:
+        candidates: {view index: (largest inscribed distance, area, u, v)} of one instance.
+        tolerance: inscribed distances this close (pixels) to the largest count as equal.
+    Returns:
+        the chosen view index.
+    """
+    deepest = max(c[0] for c in candidates.values())
+    near = [i for i, c in candidates.items() if c[0] >= deepest - tolerance]
+    return max(near, key=lambda i: (candidates[i][1], -i))
