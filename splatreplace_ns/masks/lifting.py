@@ -13,8 +13,8 @@ from typing import Optional, Tuple
 import torch
 
 from nerfstudio.cameras.cameras import Cameras
-from splatreplace_ns.render.cameras import world_to_camera
 
+from splatreplace_ns.render.cameras import world_to_camera
 from splatreplace_ns.segment.clicks import pixel_index
 
 
