@@ -574,6 +574,18 @@ def test_gsplat_without_its_kernels_falls_back_to_torch_or_says_why(monkeypatch)
     rasterize_module.gsplat_unavailable_reason.cache_clear()
 
 
+def test_render_benchmark_leaves_out_gsplat_rows_without_its_kernels(monkeypatch, capsys):
+    from splatreplace_ns.bench.render import _backends
+
+    rasterize_module = importlib.import_module("splatreplace_ns.render.rasterize")
+    monkeypatch.setattr(rasterize_module, "gsplat_unavailable_reason", lambda: "no CUDA toolkit (nvcc)")
+    assert _backends("cuda") == [("torch", "cuda")]
+    assert "gsplat rows left out: no CUDA toolkit" in capsys.readouterr().out
+    monkeypatch.setattr(rasterize_module, "gsplat_unavailable_reason", lambda: None)
+    assert _backends("cuda") == [("torch", "cuda"), ("gsplat", "cuda")]
+    assert _backends("cpu") == [("torch", "cpu")]
+
+
 def test_gsplat_call_and_unpacking_on_cpu(monkeypatch):
     """The gsplat branch's contract with ``gsplat.rasterization`` (1.4): what it asks for (classic mode, RGB+ED,
     absgrad passed through, zero quaternions guarded, background per camera) and how it unpacks the result.

@@ -250,11 +250,16 @@ def _machine_info(device: str) -> Dict[str, Any]:
 
 
 def _backends(device: str) -> List[Tuple[str, str]]:
-    """(backend, device) pairs to measure."""
+    """(backend, device) pairs to measure; on CUDA gsplat only where its kernels load (else the reason is printed)."""
     if device == "cpu":
         return [("torch", "cpu")]
-    out = [("torch", "cuda"), ("gsplat", "cuda")]
-    return out
+    from splatreplace_ns.render.rasterize import gsplat_unavailable_reason
+
+    reason = gsplat_unavailable_reason()
+    if reason is not None:
+        print(f"gsplat rows left out: {reason}", flush=True)
+        return [("torch", "cuda")]
+    return [("torch", "cuda"), ("gsplat", "cuda")]
 
 
 def run_render_bench(
