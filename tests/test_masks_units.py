@@ -514,3 +514,38 @@ def test_images_are_read_as_nerfstudio_reads_them_whatever_their_exif_orientatio
     image = read_rgb(tmp_path / "photo.jpg", 40, 30)
     assert image.shape == (30, 40, 3) and np.abs(image.astype(int) - as_nerfstudio.astype(int)).max() <= 2
     assert image[:, :20, 0].mean() > 200 and image[:, 20:, 0].mean() < 50
+
+
+class _NoNumpyTensor(torch.Tensor):
+    """A tensor that, like a CUDA one, refuses ``.numpy()`` until it is moved with ``.cpu()``."""
+
+    def numpy(self, *args, **kwargs):
+        raise TypeError("can't convert cuda:0 device type tensor to numpy. Use Tensor.cpu() first")
+
+    def cpu(self, *args, **kwargs):
+        return self.as_subclass(torch.Tensor)
+
+
+def test_masks_of_a_distorted_frame_render_from_a_camera_on_the_gpu():
+    """`splatreplace masks` moves each frame's camera to the model's device; with lens distortion the rendered
+    labels are mapped back to the captured geometry with the camera's intrinsics, which must leave the GPU
+    before becoming a numpy array (a CUDA-only TypeError otherwise)."""
+    from types import SimpleNamespace
+
+    from splatreplace_ns.masks.render import BorderConfig, render_instance_masks
+
+    H, W = 12, 16
+    weights = torch.zeros(H, W, 2)
+    weights[..., 0] = 1.0
+    weights[4:8, 5:11, 0], weights[4:8, 5:11, 1] = 0.0, 1.0  # instance 1 in the middle
+    model = SimpleNamespace(device=torch.device("cpu"),
+                            render_features=lambda camera, features: (weights, weights.sum(-1, keepdim=True),
+                                                                      torch.full((H, W, 1), 2.0)))
+    K = torch.tensor([[14.0, 0.0, W / 2], [0.0, 14.0, H / 2], [0.0, 0.0, 1.0]])
+    camera = SimpleNamespace(get_intrinsics_matrices=lambda: K[None].as_subclass(_NoNumpyTensor))
+    with pytest.raises(TypeError, match="cpu"):
+        camera.get_intrinsics_matrices().numpy()  # the stand-in behaves like a CUDA tensor
+    distortion = np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0])
+    mask = render_instance_masks(model, camera, torch.zeros(3, dtype=torch.long), 1, None, BorderConfig(), distortion)
+    assert mask.shape == (H, W) and mask.dtype == np.uint16
+    assert mask[6, 8] == 1 and mask[0, 0] == 0  # the instance stays where it was rendered, near the centre

@@ -199,7 +199,7 @@ def render_instance_masks(
     labels = labels_from_weights(weights, cfg.min_weight).cpu().numpy()
     weights, depth = weights.cpu().numpy(), depth[..., 0].cpu().numpy()
     if distortion is not None and np.any(distortion):  # clean up in the captured image's geometry
-        K = camera.get_intrinsics_matrices().reshape(3, 3).double().numpy()
+        K = camera.get_intrinsics_matrices().reshape(3, 3).double().cpu().numpy()  # the camera may be on CUDA
         labels = distort_map(labels, K, distortion)
         depth = distort_map(depth, K, distortion)
         weights = distort_map(weights, K, distortion, nearest=False)
