@@ -333,10 +333,7 @@ def _rasterize_torch(
 def _rasterize_gsplat(
     means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, bg, near, far, absgrad=False
 ) -> RenderOutput:
-    try:
-        from gsplat import rasterization
-    except Exception as exc:  # pragma: no cover - depends on the install
-        raise RuntimeError("backend='gsplat' requested but gsplat is not importable") from exc
+    from gsplat import rasterization  # resolve_backend has checked that gsplat and its kernels load
 
     # gsplat normalises quaternions without an epsilon: replace (near-)zero
     # quaternions by the identity so they do not turn into NaNs.
