@@ -549,3 +549,100 @@ def test_masks_of_a_distorted_frame_render_from_a_camera_on_the_gpu():
     mask = render_instance_masks(model, camera, torch.zeros(3, dtype=torch.long), 1, None, BorderConfig(), distortion)
     assert mask.shape == (H, W) and mask.dtype == np.uint16
     assert mask[6, 8] == 1 and mask[0, 0] == 0  # the instance stays where it was rendered, near the centre
+
+
+def chair_back_against_a_table():
+    """A chair (seat, a post and a back plate, all red) whose back leans on the top of a wooden table: the back
+    touches the table along its top strip and reaches its seat through one thin post. Returns means, colours,
+    truth (1 chair, 2 table), spacing, and the chair's back as a boolean mask."""
+    from splatreplace_ns.masks.clustering import kth_neighbour_distances
+
+    rng = np.random.default_rng(0)
+    seat = rng.uniform([-1, 0, 0], [-0.5, 0.5, 0.1], (600, 3))
+    post = rng.uniform([-0.55, 0.2, 0.1], [-0.5, 0.3, 0.5], (60, 3))
+    back = rng.uniform([-0.5, 0, 0.5], [-0.45, 0.5, 1.0], (400, 3))
+    table = rng.uniform([-0.45, 0, 0.85], [0.5, 0.5, 1.0], (2500, 3))
+    means = np.concatenate([seat, post, back, table])
+    truth = np.repeat([1, 1, 1, 2], [600, 60, 400, 2500])
+    colours = np.where((truth == 1)[:, None], [0.8, 0.2, 0.2], [0.55, 0.5, 0.45])
+    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    is_back = np.zeros(len(means), dtype=bool)
+    is_back[660:1060] = True
+    return means, colours, truth, float(np.median(kth_neighbour_distances(means, 8))), is_back
+
+
+def test_class_colour_prior_gives_the_chair_back_leaning_on_a_table_to_the_chair():
+    """The walk alone gives the back to the table (its contact is wider than the post); the chair class's
+    colour model (red, from its seat) against the table's (wood) gives it to the chair. Off, it stays the table's."""
+    from splatreplace_ns.masks.clustering import Clustering
+
+    means, colours, truth, spacing, is_back = chair_back_against_a_table()
+    clustering = Clustering(np.zeros(len(means), dtype=np.int64), spacing)
+    clicks = [LiftedClick(0, 0, (0.0, 0.0), "chair", torch.tensor([-0.75, 0.25, 0.05]), "click 0"),
+              LiftedClick(1, 0, (0.0, 0.0), "table", torch.tensor([0.0, 0.25, 0.92]), "click 1")]
+    opacities = np.ones(len(means))
+    with_prior = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=2.0))
+    without = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=0.0))
+    assert (with_prior == truth).mean() > 0.99
+    assert (with_prior[is_back] == 1).all()
+    assert (without[is_back] == 2).mean() > 0.9  # the walk alone gets it wrong: the prior is what fixes it
+
+
+def test_colour_prior_leaves_the_split_between_copies_to_the_walk():
+    """Three posts of one class under a beam: each post's colour model is the class's, so the prior is the same
+    for every click and the split is exactly the walk's."""
+    from splatreplace_ns.masks.clustering import Clustering
+
+    rng = np.random.default_rng(0)
+    xs = (-1.0, 0.0, 1.0)
+    posts = [np.c_[rng.uniform(x - 0.1, x + 0.1, 800), rng.uniform(-0.1, 0.1, 800), rng.uniform(0, 1.0, 800)] for x in xs]
+    beam = np.c_[rng.uniform(-1.3, 1.3, 3000), rng.uniform(-0.15, 0.15, 3000), rng.uniform(1.0, 1.2, 3000)]
+    means = np.concatenate(posts + [beam])
+    colours = np.concatenate([np.tile([0.8, 0.8, 0.75], (2400, 1)), np.tile([0.75, 0.7, 0.6], (3000, 1))])
+    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    clustering = Clustering(np.zeros(len(means), dtype=np.int64), 0.05)
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.0, 0.5]), f"click {k}") for k, x in enumerate(xs)]
+    opacities = np.ones(len(means))
+    with_prior = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=2.0))
+    without = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=0.0))
+    assert (with_prior == without).all()
+    for k in range(3):
+        assert (with_prior[800 * k : 800 * (k + 1)] == k + 1).all()
+    # the equality comes from the shared class model: posts of three classes get three models, which differ
+    # by their samples, and the prior then moves part of the beam
+    mixed = [LiftedClick(k, 0, (0.0, 0.0), f"post{k}", torch.tensor([x, 0.0, 0.5]), f"click {k}") for k, x in enumerate(xs)]
+    assert (instance_ids(mixed, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=2.0))
+            != with_prior).any()
+
+
+def test_floor_as_background_takes_the_fuzz_a_box_is_linked_to():
+    """A box on a floor with a patch of floor fuzz (1.7 to 2.1 spacings above the floor, off its plane) linked to
+    the box by a line of fuzz: one DBSCAN cluster. Without a background in the walk the box's click owns the
+    patch; with the floor's Gaussians as the background seed (``background_radius``) the patch is background
+    and the box stays whole. Edges onto the floor keep their plain length here: the patch lies 1.7–2.1
+    spacings above the floor, where the default tenfold length cuts it off the floor as well."""
+    from splatreplace_ns.masks.clustering import PLANE
+
+    means, truth, colours = boxes_on_a_floor()
+    keep = truth <= 1  # the floor and box a (centre x = -1)
+    means, truth, colours = means[keep], truth[keep], colours[keep]
+    spacing = cluster_gaussians(means, np.ones(len(means)), ClusteringConfig()).spacing
+    rng = np.random.default_rng(3)
+    low, high = 1.7 * spacing, 2.1 * spacing  # above the plane's inlier band (1.5 spacings)
+    line = np.c_[np.linspace(-1.25, -1.6, 60), rng.normal(0, 0.01, 60), rng.uniform(low, high, 60)]
+    patch = np.c_[rng.uniform(-2.0, -1.6, 200), rng.uniform(-0.2, 0.2, 200), rng.uniform(low, high, 200)]
+    means = np.concatenate([means, line, patch])
+    truth = np.concatenate([truth, np.full(260, 9)])
+    colours = np.concatenate([colours, np.full((260, 3), 0.5)])
+    opacities = np.ones(len(means))
+    cfg = ClusteringConfig()
+    clustering = cluster_gaussians(means, opacities, cfg)
+    box_cluster = np.bincount(clustering.labels[truth == 1][clustering.labels[truth == 1] >= 0]).argmax()
+    assert (clustering.labels[truth == 9] == box_cluster).mean() > 0.8  # the fuzz is in the box's cluster
+    assert (clustering.labels == PLANE).sum() > 1000
+    clicks = [lifted(0, [-1.0, 0.0, 0.5])]
+    plain = instance_ids(clicks, means, opacities, colours, clustering, cfg)
+    floor = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(background_radius=3.0, background_edge_factor=1.0))
+    assert (plain[truth == 9] == 1).mean() > 0.8
+    assert (floor[truth == 9] == 0).mean() > 0.75
+    assert (floor[truth == 1] == 1).mean() > 0.9
