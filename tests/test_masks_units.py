@@ -646,3 +646,35 @@ def test_floor_as_background_takes_the_fuzz_a_box_is_linked_to():
     assert (plain[truth == 9] == 1).mean() > 0.8
     assert (floor[truth == 9] == 0).mean() > 0.75
     assert (floor[truth == 1] == 1).mean() > 0.9
+
+
+def test_a_pieces_foot_in_the_boards_plane_band_is_given_back_by_its_colour():
+    """A blue post on a flat round foot standing on a wooden board: the foot lies within the board's plane band and goes
+    with the plane; ``reclaim_by_colour`` gives back those whose colour is the post class's, and no board
+    Gaussian. Off (radius 0), the foot stays with the board."""
+    from splatreplace_ns.masks.clustering import PLANE
+
+    rng = np.random.default_rng(0)
+    board = np.c_[rng.uniform(-1, 1, (8000, 2)), rng.normal(0, 0.002, 8000)]
+    angle, height = rng.uniform(0, 2 * np.pi, 3000), rng.uniform(0.0, 0.6, 3000)
+    radius = np.sqrt(rng.uniform(0, 1, 600)) * 0.16
+    disc_angle = rng.uniform(0, 2 * np.pi, 600)
+    foot_disc = np.c_[radius * np.cos(disc_angle), radius * np.sin(disc_angle), rng.uniform(0.005, 0.015, 600)]
+    post = np.concatenate([np.c_[0.08 * np.cos(angle), 0.08 * np.sin(angle), height], foot_disc])
+    means = np.concatenate([board, post])
+    squares = ((np.floor(board[:, 0] * 4) + np.floor(board[:, 1] * 4)) % 2)[:, None]
+    colours = np.concatenate([np.where(squares > 0, [0.85, 0.75, 0.55], [0.45, 0.3, 0.2]), np.tile([0.2, 0.3, 0.8], (3600, 1))])
+    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    opacities = np.ones(len(means))
+    cfg = ClusteringConfig()
+    clustering = cluster_gaussians(means, opacities, cfg)
+    foot = np.arange(len(means)) >= len(board)
+    foot &= clustering.labels == PLANE
+    assert foot.sum() > 30  # the band took the post's foot
+    clicks = [LiftedClick(0, 0, (0.0, 0.0), "post", torch.tensor([0.08, 0.0, 0.3]), "click 0")]
+    ids = instance_ids(clicks, means, opacities, colours, clustering, cfg)
+    off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(colour_reclaim_radius=0.0))
+    assert (ids[foot] == 1).mean() > 0.95 and (off[foot] == 0).all()
+    beside = np.linalg.norm(board[:, :2], axis=1) > 0.17  # the board under the foot no camera sees
+    assert (ids[: len(board)][beside] == 0).all()
+    assert (ids[len(board):] == 1).mean() > 0.97
