@@ -678,3 +678,43 @@ def test_a_pieces_foot_in_the_boards_plane_band_is_given_back_by_its_colour():
     beside = np.linalg.norm(board[:, :2], axis=1) > 0.17  # the board under the foot no camera sees
     assert (ids[: len(board)][beside] == 0).all()
     assert (ids[len(board):] == 1).mean() > 0.97
+
+
+def pawns_one_running_on_into_fuzz(seed: int = 0):
+    """Three upright cylinders (pawns) 0.3 tall, and a patch of fuzz 1 away from the first, joined to it by a
+    line of fuzz (one cluster with it). Returns means, truth (1–3 the pawns, 9 the fuzz), the clustering and
+    the clicks (at each pawn's middle)."""
+    from splatreplace_ns.masks.clustering import Clustering
+
+    rng = np.random.default_rng(seed)
+    pawns, labels = [], []
+    for k, x in enumerate((0.0, 0.6, 1.2)):
+        angle, z = rng.uniform(0, 2 * np.pi, 800), rng.uniform(0, 0.3, 800)
+        pawns.append(np.c_[x + 0.05 * np.cos(angle), 0.05 * np.sin(angle), z])
+        labels.append(np.full(800, k + 1))
+    line = np.c_[np.zeros(80), np.linspace(-0.06, -1.0, 80), np.full(80, 0.02)]
+    patch = np.c_[rng.uniform(-0.2, 0.2, 600), rng.uniform(-1.3, -1.0, 600), rng.uniform(0.0, 0.04, 600)]
+    means = np.concatenate(pawns + [line, patch])
+    truth = np.concatenate(labels + [np.full(680, 9)])
+    cluster = np.where(truth == 9, 0, truth - 1)  # the fuzz in the first pawn's cluster
+    clustering = Clustering(cluster.astype(np.int64), 0.02)
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), "pawn", torch.tensor([x + 0.05, 0.0, 0.15]), f"click {k}")
+              for k, x in enumerate((0.0, 0.6, 1.2))]
+    return means, truth, clustering, clicks
+
+
+def test_what_lies_farther_from_a_click_than_its_class_is_large_is_background():
+    """The first pawn's cluster holds a patch of fuzz a metre away: the two other pawns set the class's size
+    (0.3 tall, 0.1 wide), and nothing farther than that from the click stays with it. Off, the patch is the
+    pawn's; a class of one instance has no size and is left alone."""
+    means, truth, clustering, clicks = pawns_one_running_on_into_fuzz()
+    opacities = np.ones(len(means))
+    colours = np.full((len(means), 3), 0.5)
+    ids = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig())
+    off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(class_size_cut=0.0))
+    for k in (1, 2, 3):
+        assert (ids[truth == k] == k).all()  # no pawn loses anything: a pawn fits within its class's size
+    assert (off[truth == 9] == 1).all()
+    assert (ids[truth == 9] == 0).mean() > 0.95
+    alone = [LiftedClick(0, 0, (0.0, 0.0), "king", clicks[0].point, "click 0")] + list(clicks[1:])
+    assert (instance_ids(alone, means, opacities, colours, clustering, ClusteringConfig())[truth == 9] == 1).all()
