@@ -718,3 +718,17 @@ def test_what_lies_farther_from_a_click_than_its_class_is_large_is_background():
     assert (ids[truth == 9] == 0).mean() > 0.95
     alone = [LiftedClick(0, 0, (0.0, 0.0), "king", clicks[0].point, "click 0")] + list(clicks[1:])
     assert (instance_ids(alone, means, opacities, colours, clustering, ClusteringConfig())[truth == 9] == 1).all()
+
+
+def test_geodesic_split_still_makes_every_instance_with_the_colour_steps_on():
+    """The colour reclaim and the size cut read each class's colour model; with the geodesic split it comes from
+    the split's own owners (a class seen only in a split cluster used to have none)."""
+    means, truth, colours = boxes_on_a_floor()
+    opacities = np.ones(len(means))
+    clicks = [lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.8, -0.1, 0.5]), lifted(2, [0.8, 0.6, 0.5])]
+    clicks = [LiftedClick(c.index, 0, (0.0, 0.0), "box" if c.index == 0 else "crate", c.point, c.source) for c in clicks]
+    cfg = ClusteringConfig(split_method="geodesic")
+    ids = instance_ids(clicks, means, opacities, colours, cluster_gaussians(means, opacities, cfg), cfg)
+    for k in (1, 2, 3):
+        a, b = ids == k, truth == k
+        assert (a & b).sum() / (a | b).sum() > 0.85, k

@@ -593,7 +593,8 @@ def walk_owners(walk: Walk, means: np.ndarray, cfg: ClusteringConfig, colour_pri
     Args:
         walk: the cluster's walk.
         means: [P, 3] its points.
-        colour_prior: [F, S] per free point and click, p(colour | the click's class), or None.
+        colour_prior: [F, S] per free point and click, p(colour | the click's class) normalised over the
+            clicks and raised to ``split_colour_prior``, or None.
 
     Returns:
         [P] index into the clicks, or :data:`SHARED` (left to the background).
@@ -692,9 +693,11 @@ def instance_ids(
 ) -> np.ndarray:
     """Per-Gaussian instance id: click number ``i`` (0-based position in ``clicks``) → id ``i + 1``; 0 = background.
 
-    A cluster holding several clicks is split between them (:func:`random_walk_split` or
-    :func:`geodesic_split`; what the random walk leaves shared stays background), unless two of its clicks
-    are so close that they are one object clicked twice.
+    A cluster holding several clicks is split between them (:func:`random_walk` weighed by the colour model of
+    each click's class, or :func:`geodesic_split`; what the random walk leaves shared stays background), unless
+    two of its clicks are so close that they are one object clicked twice. Then what lies farther from a
+    click than its class's size goes to the background (:func:`cut_beyond_class_size`), and plane Gaussians
+    of an instance's colour next to it join it (:func:`reclaim_by_colour`).
 
     Raises:
         ClickError: from :func:`clusters_of_clicks`, or two clicks on the same spot of one cluster.
@@ -724,6 +727,7 @@ def instance_ids(
             owner = geodesic_split(means[members], colours[members], seeds, clustering.spacing, cfg)
             for j, p in enumerate(positions):
                 ids[members[owner == j]] = p + 1
+                samples.setdefault(clicks[p].cls, []).append(colours[members[owner == j]])
             continue
         walked = np.concatenate([members, on_plane[floor]])
         _, seeds = cKDTree(means[walked]).query(points, k=1)
