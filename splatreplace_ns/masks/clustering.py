@@ -643,17 +643,17 @@ def colour_bin(colours: np.ndarray, bins: int) -> np.ndarray:
 
 
 def random_walk_split(
-    means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], spacing: float, cfg: ClusteringConfig,
-    background: Optional[np.ndarray] = None,
+    means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], spacing: float, cfg: ClusteringConfig
 ) -> np.ndarray:
-    """Splits one cluster among several seeds by the random walker (:func:`random_walk`, :func:`walk_owners`):
-    every point goes to the seed its walk most likely reaches first.
+    """Splits one cluster among several seeds by the random walker alone (:func:`random_walk`,
+    :func:`walk_owners`; no background, no colour prior): every point goes to the seed its walk most likely
+    reaches first.
 
     Returns:
         [P] index into ``seeds``, or :data:`SHARED` for points that no click wins with at least
-        ``split_min_probability`` or that the background wins (and for the background points themselves).
+        ``split_min_probability``.
     """
-    return walk_owners(random_walk(means, colours, seeds, spacing, cfg, background), means, cfg)
+    return walk_owners(random_walk(means, colours, seeds, spacing, cfg), means, cfg)
 
 
 def adopt_unreached(means: np.ndarray, owner: np.ndarray, graph) -> np.ndarray:
