@@ -299,12 +299,9 @@ def test_random_walk_split_cuts_at_the_colour_change_not_at_the_midpoint():
     assert (random_walk_split(means, colours, seeds[:1], spacing=0.1, cfg=cfg) == 0).all()
 
 
-def test_random_walk_split_leaves_the_beam_over_three_posts_to_the_background():
-    """Three posts under one beam (a colonnade), each post clicked at its middle: every post point goes to its
-    click, while most of the beam between the posts, which the three clicks reach about equally, goes to no
-    one; with ``split_min_probability`` 0 every beam point goes to some click."""
-    from splatreplace_ns.masks.clustering import SHARED, random_walk_split
-
+def posts_under_a_beam():
+    """Three posts (800 points each, 0.2 wide, 1 tall, at x = -1, 0, 1) under one beam (3000 points, slightly
+    browner): a colonnade. Returns the post x positions, the posts, the beam, all means and colours."""
     rng = np.random.default_rng(0)
     xs = (-1.0, 0.0, 1.0)
     posts = [np.c_[rng.uniform(x - 0.1, x + 0.1, 800), rng.uniform(-0.1, 0.1, 800), rng.uniform(0, 1.0, 800)] for x in xs]
@@ -312,6 +309,16 @@ def test_random_walk_split_leaves_the_beam_over_three_posts_to_the_background():
     means = np.concatenate(posts + [beam])
     colours = np.concatenate([np.tile([0.8, 0.8, 0.75], (2400, 1)), np.tile([0.75, 0.7, 0.6], (3000, 1))])
     colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    return xs, posts, beam, means, colours
+
+
+def test_random_walk_split_leaves_the_beam_over_three_posts_to_the_background():
+    """Three posts under one beam (a colonnade), each post clicked at its middle: every post point goes to its
+    click, while most of the beam between the posts, which the three clicks reach about equally, goes to no
+    one; with ``split_min_probability`` 0 every beam point goes to some click."""
+    from splatreplace_ns.masks.clustering import SHARED, random_walk_split
+
+    xs, posts, beam, means, colours = posts_under_a_beam()
     seeds = [800 * k + int(np.argmin(np.linalg.norm(p - [x, 0, 0.5], axis=1))) for k, (p, x) in enumerate(zip(posts, xs))]
     owner = random_walk_split(means, colours, seeds, spacing=0.05, cfg=ClusteringConfig())
     for k in range(3):
@@ -593,13 +600,7 @@ def test_colour_prior_leaves_the_split_between_copies_to_the_walk():
     for every click and the split is exactly the walk's."""
     from splatreplace_ns.masks.clustering import Clustering
 
-    rng = np.random.default_rng(0)
-    xs = (-1.0, 0.0, 1.0)
-    posts = [np.c_[rng.uniform(x - 0.1, x + 0.1, 800), rng.uniform(-0.1, 0.1, 800), rng.uniform(0, 1.0, 800)] for x in xs]
-    beam = np.c_[rng.uniform(-1.3, 1.3, 3000), rng.uniform(-0.15, 0.15, 3000), rng.uniform(1.0, 1.2, 3000)]
-    means = np.concatenate(posts + [beam])
-    colours = np.concatenate([np.tile([0.8, 0.8, 0.75], (2400, 1)), np.tile([0.75, 0.7, 0.6], (3000, 1))])
-    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
+    xs, posts, beam, means, colours = posts_under_a_beam()
     clustering = Clustering(np.zeros(len(means), dtype=np.int64), 0.05)
     clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.0, 0.5]), f"click {k}") for k, x in enumerate(xs)]
     opacities = np.ones(len(means))
