@@ -733,3 +733,27 @@ def test_geodesic_split_still_makes_every_instance_with_the_colour_steps_on():
     for k in (1, 2, 3):
         a, b = ids == k, truth == k
         assert (a & b).sum() / (a | b).sum() > 0.85, k
+
+
+def test_an_island_no_click_reaches_is_adopted_by_its_neighbour_whatever_the_colour_prior():
+    """Points the walk reaches only at leak level (probabilities below 1e-6) are unreached: they go to the side
+    of the nearest reached point. The colour prior renormalises the probabilities and must not turn those
+    leak-level values into a confident choice (here it favours the far click strongly)."""
+    from splatreplace_ns.masks.clustering import Walk, knn_graph, walk_owners
+
+    rng = np.random.default_rng(0)
+    left = rng.uniform([-1.0, 0, 0], [0.0, 1, 1], (300, 3))
+    right = rng.uniform([0.0, 0, 0], [1.0, 1, 1], (300, 3))
+    island = np.array([1.35, 0.5, 0.5]) + rng.normal(0, 1e-4, (30, 3))
+    means = np.concatenate([left, right, island])
+    marked = np.full(len(means), -1)
+    marked[0], marked[300] = 0, 1
+    free = np.flatnonzero(marked < 0)
+    probabilities = np.where((free < 300)[:, None], [1.0, 0.0], [0.0, 1.0])
+    probabilities[free >= 600] = [1e-8, 3e-9]  # leak level
+    walk = Walk(marked, free, probabilities, knn_graph(means, np.full_like(means, 0.5), 0.1, ClusteringConfig()), 2)
+    prior = np.full((len(free), 2), 0.5)
+    prior[free >= 600] = [0.999, 0.001]
+    owner = walk_owners(walk, means, ClusteringConfig(), prior)
+    assert (owner[:300] == 0).all() and (owner[300:600] == 1).all()
+    assert (owner[600:] == 1).all()  # adopted by the right box next to it

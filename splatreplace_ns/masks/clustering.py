@@ -602,6 +602,8 @@ def walk_owners(walk: Walk, means: np.ndarray, cfg: ClusteringConfig, colour_pri
     owner = walk.marked.copy()
     probabilities = walk.probabilities
     if len(walk.free):
+        # reached or not is the walk's own verdict: renormalising below would lift leak-level values
+        unreached = walk.probabilities[:, : walk.num_clicks].max(axis=1) < 1e-6
         to_background = np.zeros(len(walk.free), dtype=bool)
         if probabilities.shape[1] > walk.num_clicks:
             to_background = probabilities[:, -1] >= cfg.background_probability
@@ -612,8 +614,8 @@ def walk_owners(walk: Walk, means: np.ndarray, cfg: ClusteringConfig, colour_pri
             probabilities = np.where(total > 1e-12, posterior / np.maximum(total, 1e-300), probabilities)
         best = probabilities.max(axis=1)
         owner[walk.free] = np.argmax(probabilities, axis=1)
-        owner[walk.free[best < 1e-6]] = -1
-        owner[walk.free[(best >= 1e-6) & (best < cfg.split_min_probability)]] = SHARED
+        owner[walk.free[unreached]] = -1
+        owner[walk.free[~unreached & (best < cfg.split_min_probability)]] = SHARED
         owner[walk.free[to_background]] = SHARED
     owner[owner == walk.num_clicks] = SHARED
     return adopt_unreached(means, owner, walk.graph)
