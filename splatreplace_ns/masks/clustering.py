@@ -712,7 +712,7 @@ def instance_ids(
     for position, click in enumerate(clicks):
         by_cluster.setdefault(chosen[click.index], []).append(position)
     on_plane = np.flatnonzero(clustering.labels == PLANE)
-    walks: Dict[int, Tuple[np.ndarray, Walk]] = {}  # cluster → (walked points, walk)
+    walks: Dict[int, Tuple[np.ndarray, int, Walk]] = {}  # cluster → (walked points, how many are its own, walk)
     samples: Dict[str, List[np.ndarray]] = {}  # class → colours of points surely its own (for the colour prior)
     for cluster, positions in by_cluster.items():
         members = np.flatnonzero(clustering.labels == cluster)
@@ -735,7 +735,7 @@ def instance_ids(
         _, seeds = cKDTree(means[walked]).query(points, k=1)
         walk = random_walk(means[walked], colours[walked], seeds, clustering.spacing, cfg,
                            np.arange(len(walked)) >= len(members))
-        walks[cluster] = (walked, walk)
+        walks[cluster] = (walked, len(members), walk)
         sure = sure_points(walk, cfg.colour_model_probability)
         for j, p in enumerate(positions):
             samples.setdefault(clicks[p].cls, []).append(colours[walked[sure == j]])
@@ -743,15 +743,15 @@ def instance_ids(
     # one colour model per class, from every instance of it in the scene: copies look alike, and an instance
     # half taken by its neighbour still has siblings elsewhere that show the class's colours
     histograms = {cls: colour_histogram(np.concatenate(parts), cfg.colour_bins) for cls, parts in samples.items()}
-    for cluster, (walked, walk) in walks.items():
+    for cluster, (walked, num_members, walk) in walks.items():
         positions = by_cluster[cluster]
         prior = None
         if cfg.split_colour_prior > 0 and len(positions) > 1:
             bins = colour_bin(colours[walked[walk.free]], cfg.colour_bins)
             likelihood = np.stack([histograms[clicks[p].cls][bins] for p in positions], axis=1)
             prior = (likelihood / likelihood.sum(axis=1, keepdims=True)) ** cfg.split_colour_prior
-        owner = walk_owners(walk, means[walked], cfg, prior)[: int((clustering.labels == cluster).sum())]
-        members = walked[: len(owner)]
+        owner = walk_owners(walk, means[walked], cfg, prior)[:num_members]  # the plane's points stay planes
+        members = walked[:num_members]
         for j, p in enumerate(positions):
             ids[members[owner == j]] = p + 1
     if cfg.class_size_cut > 0:
