@@ -374,8 +374,8 @@ def test_structure_over_a_colonnade_goes_to_the_background_and_capitals_stay():
 
 
 def test_a_click_where_the_model_is_sparse_still_gets_a_seed_of_its_size():
-    """A click at a sparse spot gets the ``split_seed_min_points`` points nearest to it as its seed; a click in
-    a dense part keeps its seed ball (which holds more)."""
+    """A click at a sparse spot gets as seed its nearest points, as many as half the median seed ball of the
+    cluster's clicks; clicks in dense parts keep their balls, and a sparse seed stays on its side."""
     from splatreplace_ns.masks.clustering import random_walk
 
     rng = np.random.default_rng(0)
@@ -383,14 +383,17 @@ def test_a_click_where_the_model_is_sparse_still_gets_a_seed_of_its_size():
     sparse = rng.uniform([0.0, -0.2, 0.0], [1.0, 0.2, 1.0], (300, 3))
     means = np.concatenate([dense, sparse])
     colours = np.full_like(means, 0.5)
-    seeds = [int(np.argmin(np.linalg.norm(means - [-0.5, 0, 0.5], axis=1))),
+    seeds = [int(np.argmin(np.linalg.norm(means - [-0.5, 0, 0.25], axis=1))),
+             int(np.argmin(np.linalg.norm(means - [-0.5, 0, 0.75], axis=1))),
              4000 + int(np.argmin(np.linalg.norm(sparse - [0.5, 0, 0.5], axis=1)))]
     spacing = 0.1
-    plain = random_walk(means, colours, seeds, spacing, ClusteringConfig(split_seed_min_points=0))
-    sized = random_walk(means, colours, seeds, spacing, ClusteringConfig(split_seed_min_points=60))
-    assert (plain.marked == 1).sum() < 40 and (sized.marked == 1).sum() == 60, (plain.marked == 1).sum()
-    assert (sized.marked == 0).sum() == (plain.marked == 0).sum() > 60
-    assert ((sized.marked == 1) & (np.arange(len(means)) < 4000)).sum() == 0  # its seed stays on its side
+    plain = random_walk(means, colours, seeds, spacing, ClusteringConfig(split_seed_min_fraction=0.0))
+    sized = random_walk(means, colours, seeds, spacing, ClusteringConfig())
+    balls = [int((plain.marked == j).sum()) for j in range(3)]
+    assert balls[2] < 0.25 * min(balls[:2]), balls
+    assert (sized.marked == 2).sum() == int(0.5 * np.median(balls))
+    assert [int((sized.marked == j).sum()) for j in range(2)] == balls[:2]
+    assert ((sized.marked == 2) & (np.arange(len(means)) < 4000)).sum() == 0
 
 
 def test_perplexity_counts_the_labels_that_share_a_point():

@@ -100,12 +100,14 @@ class ClusteringConfig:
     3: 0.650 (the beam comes back). 0 keeps none."""
     split_seed_radius: float = 2.0
     """``random_walk``: the seed of a click is every point within this many spacings of it."""
-    split_seed_min_points: int = 100
-    """``random_walk``: a seed whose ball holds fewer points is the click's this many nearest points instead. A
-    click where the model is sparse (the edge of a shaft) had a seed of 25–36 points against 200–240 for its
-    neighbours' clicks, and its walk shared its own shaft with the others. Masks mIoU temple at 320×240
-    (`bench masks`, 200 views, same base model): 0: 0.639 (that column 0.47); 100: 0.668 (0.82); 200: 0.679;
-    at 160×120: 0.691 with 0 or 100, 0.671 with 200 (end column 1: 0.22 → 0.08). 0 keeps the ball alone."""
+    split_seed_min_fraction: float = 0.5
+    """``random_walk``: a seed whose ball holds fewer points than this fraction of the median ball of the
+    cluster's clicks is that many of the click's nearest points instead. A click where the model is sparse
+    (the edge of a shaft) had a seed of 25–36 points against 200–240 for its neighbours' clicks, and its walk
+    shared its own shaft with the others. Masks mIoU temple at 320×240 (`bench masks`, 200 views, same base
+    model, ball counts 25–243, median 208): 0: 0.639 (that column 0.47); 0.3: 0.660; 0.5: 0.672 (0.85);
+    0.8: 0.678. At 160×120 temple / office / chess: 0 and 0.5: 0.691 / 0.822 / 0.831; 0.8: 0.671 (end
+    column 1 0.22 → 0.08) / 0.823 / 0.831. 0 keeps the balls as they are."""
     split_neighbours: int = 16
     """kNN graph degree when a cluster holding several clicks is split between them."""
     split_colour_weight: float = 20.0
@@ -587,10 +589,13 @@ def random_walk(
     if has_background:
         marked[background] = len(seeds)  # first: a click's own seed ball wins over the plane
     tree = cKDTree(means)
-    for j, seed in enumerate(seeds):  # later seeds do not overwrite earlier ones
-        near = np.asarray(tree.query_ball_point(means[seed], cfg.split_seed_radius * spacing), dtype=np.int64)
-        if len(near) < cfg.split_seed_min_points:  # a click where the model is sparse still anchors its walk
-            near = np.atleast_1d(tree.query(means[seed], k=min(cfg.split_seed_min_points, len(means)))[1]).astype(np.int64)
+    balls = [np.asarray(tree.query_ball_point(means[seed], cfg.split_seed_radius * spacing), dtype=np.int64)
+             for seed in seeds]
+    # a click where the model is sparse still anchors its walk: at least a fraction of the typical seed
+    fewest = int(cfg.split_seed_min_fraction * np.median([len(ball) for ball in balls])) if len(balls) else 0
+    for j, (seed, near) in enumerate(zip(seeds, balls)):  # later seeds do not overwrite earlier ones
+        if len(near) < fewest:
+            near = np.atleast_1d(tree.query(means[seed], k=min(fewest, len(means)))[1]).astype(np.int64)
         marked[near[(marked[near] < 0) | (marked[near] == len(seeds))]] = j
         marked[seed] = j
     free = np.flatnonzero(marked < 0)
