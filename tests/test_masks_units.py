@@ -396,6 +396,43 @@ def test_a_click_where_the_model_is_sparse_still_gets_a_seed_of_its_size():
     assert ((sized.marked == 2) & (np.arange(len(means)) < 4000)).sum() == 0
 
 
+def test_a_back_its_own_texture_cuts_off_goes_to_its_seat_not_to_the_table_it_touches():
+    """A chair: a blue seat and a back of red and white squares standing on it, whose top touches a wooden
+    table. At this spacing the colour-weighted edges between the squares are weaker than the walk's leak: from
+    the back the walk reaches its seeds with probability 0.004 (median), and the table got what little there
+    was. Those points take the probabilities of a walk without colour weights, by which the back stands on the
+    seat; seat and table stay whole, and points the colour walk reaches well keep its answer."""
+    from splatreplace_ns.masks.clustering import random_walk, rewalk_weakly_reached, walk_owners
+
+    rng = np.random.default_rng(0)
+    seat = rng.uniform([0, 0, 0], [1, 1, 0.15], (3000, 3))
+    back = rng.uniform([0, 0.85, 0.15], [1, 1, 1.2], (3000, 3))
+    table = rng.uniform([1.0, 0.3, 0.95], [2.2, 1.2, 1.05], (3000, 3))
+    means = np.concatenate([seat, back, table])
+    square = (np.floor(back[:, 0] / 0.2) + np.floor(back[:, 2] / 0.2)).astype(int) % 2
+    colours = np.concatenate([np.tile([0.1, 0.1, 0.8], (3000, 1)),
+                              np.where(square[:, None] == 1, [0.95, 0.95, 0.9], [0.85, 0.15, 0.1]),
+                              np.tile([0.55, 0.4, 0.25], (3000, 1))])
+    colours = np.clip(colours + rng.normal(0, 0.01, colours.shape), 0, 1)
+    seeds = [int(np.argmin(np.linalg.norm(means - [0.5, 0.5, 0.07], axis=1))),
+             int(np.argmin(np.linalg.norm(means - [1.6, 0.75, 1.0], axis=1)))]
+    cfg = ClusteringConfig()
+    walk = random_walk(means, colours, seeds, 0.012, cfg)
+    reach = np.ones(len(means))
+    reach[walk.free] = walk.probabilities.sum(axis=1)
+    assert np.median(reach[3000:6000]) < 0.01 and reach[:3000].min() > 0.99 and reach[6000:].min() > 0.99
+    before = walk_owners(walk, means, cfg)
+    assert (before[3000:6000] == 0).mean() < 0.05
+    after = walk_owners(rewalk_weakly_reached(walk, means, colours, seeds, cfg), means, cfg)
+    weak = reach < cfg.split_reach_mass
+    assert (after[weak] == 0).mean() > 0.85, (after[weak] == 0).mean()
+    assert (after[~weak] == before[~weak]).all()
+    assert (after[3000:6000] == 0).mean() > 0.4  # the squares that touch the table stay the walk's (to the prior)
+    assert (after[:3000] == 0).all() and (after[6000:] == 1).all()
+    off = rewalk_weakly_reached(walk, means, colours, seeds, ClusteringConfig(split_reach_mass=0.0))
+    assert off is walk
+
+
 def test_perplexity_counts_the_labels_that_share_a_point():
     from splatreplace_ns.masks.clustering import perplexity
 
