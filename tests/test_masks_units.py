@@ -880,3 +880,16 @@ def test_an_island_no_click_reaches_is_adopted_by_its_neighbour_whatever_the_col
     owner = walk_owners(walk, means, ClusteringConfig(), prior)
     assert (owner[:300] == 0).all() and (owner[300:600] == 1).all()
     assert (owner[600:] == 1).all()  # adopted by the right box next to it
+
+
+def test_sparse_instances_names_the_copies_the_base_model_barely_holds():
+    """An instance far below its class's median count is named (id, class, count, median); classes of fewer
+    than three instances, and fraction 0, name none."""
+    from splatreplace_ns.masks.command import sparse_instances
+
+    counts = {1: 120, 2: 2900, 3: 3100, 4: 2700, 5: 800, 6: 50, 7: 40}
+    classes = {1: "pillar", 2: "pillar", 3: "pillar", 4: "pillar", 5: "pillar", 6: "table", 7: "table"}
+    messages = sparse_instances(counts, classes, 0.25)
+    assert len(messages) == 1 and messages[0].startswith("instance 1 (pillar) holds 120 Gaussians against a median of 2700")
+    assert len(sparse_instances(counts, classes, 0.5)) == 2  # 800 < 0.5 × 2700 too
+    assert sparse_instances(counts, classes, 0.0) == []

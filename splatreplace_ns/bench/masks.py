@@ -244,7 +244,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         rows.append({"backend": backend, "miou": scores["miou"], "boundary_f": scores["boundary_f"],
                      "time_s": report["time_s"]["masks"], "iou_per_instance": scores["iou"],
                      "boundary_f_per_instance": scores["boundary_f_per_instance"],
-                     "skipped_clicks": report["skipped_clicks"]})
+                     "skipped_clicks": report["skipped_clicks"], "sparse_instances": report["sparse_instances"]})
         first_capture = first_capture or capture
 
     downstream: Dict = {"psnr_masked_gt_masks": None, "psnr_masked_our_masks": None}
@@ -303,6 +303,8 @@ def print_table(result: Dict) -> None:
     for row in result["rows"]:
         for message in row.get("skipped_clicks", []):
             Console().print(f"{row['backend']}: skipped (scored as IoU 0): {message}")
+        for message in row.get("sparse_instances", []):
+            Console().print(f"{row['backend']}: warning: {message}")
     d = result["downstream"]
     fmt = lambda v: "null" if v is None else f"{v:.3f}"  # noqa: E731
     Console().print(

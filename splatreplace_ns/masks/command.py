@@ -54,11 +54,13 @@ class ClickMasksConfig:
     skip_bad_clicks: bool = True
     """A click that makes no instance is reported and left out (its instance gets no mask), rather than
     stopping a run whose base stage has already trained."""
+    sparse_fraction: float = 0.25
+    """Warn about an instance holding fewer Gaussians than this fraction of its class's median (0: never)."""
 
     def command(self, data: Path, clicks: Path, min_alpha: float) -> "MasksCommand":
         """The ``splatreplace masks`` settings these stand for, on the dataset folder ``data``."""
         return MasksCommand(data, clicks=clicks, clustering=self.clustering, border=self.border, min_alpha=min_alpha,
-                            skip_bad_clicks=self.skip_bad_clicks)
+                            skip_bad_clicks=self.skip_bad_clicks, sparse_fraction=self.sparse_fraction)
 
 
 @dataclass
@@ -95,11 +97,16 @@ class MasksCommand:
     object the base model holds too sparsely) and make the masks of the others, instead of stopping. Each
     instance keeps the id of its click's position (click k → id k + 1), so a skipped click leaves a gap. Two
     clicks on one instance still stop the command."""
+    sparse_fraction: float = 0.25
+    """Warn about an instance holding fewer Gaussians than this fraction of the median of its class (classes of
+    three or more instances): the base model barely holds it and its masks will be poor. 0: never."""
 
     def main(self) -> Dict:
         report = make_masks(self)
         for message in report["skipped_clicks"]:
             print(f"skipped: {message}")
+        for message in report["sparse_instances"]:
+            print(f"warning: {message}")
         print(
             f"wrote {report['frames']} masks for {len(report['instances'])} instances to {self.data / 'masks'} "
             f"and {self.data / 'transforms.json'} ({report['time_s']['masks']:.1f} s after the base stage; "
@@ -364,12 +371,40 @@ def masks_from_model(
             mask = sam_view_labels(model, sam, camera, image, instance_of_gaussian, lifted, cfg.border.min_weight)
         masks.append(click_id[mask.astype(np.int64)])
     instances = [{"id": p + 1, "class": clicks[p].cls} for p in positions]
+    counts = {p + 1: int((instance_of_gaussian == k + 1).sum()) for k, p in enumerate(positions)}
     report = {
         "instances": instances,
-        "gaussians_per_instance": {p + 1: int((instance_of_gaussian == k + 1).sum()) for k, p in enumerate(positions)},
+        "gaussians_per_instance": counts,
         "skipped_clicks": skipped,
+        "sparse_instances": sparse_instances(counts, {i["id"]: i["class"] for i in instances}, cfg.sparse_fraction),
     }
     return masks, instances, report
+
+
+def sparse_instances(counts: Dict[int, int], classes: Dict[int, str], fraction: float) -> List[str]:
+    """Instances that hold far fewer Gaussians than their class's others (the base model barely reconstructed
+    them, so their masks are poor), as messages naming them.
+
+    Args:
+        counts: {instance id: Gaussians}; classes: {instance id: class}.
+        fraction: an instance below this fraction of its class's median count (classes of three or more
+            instances) is named; 0 names none.
+    """
+    by_class: Dict[str, List[int]] = {}
+    for iid, cls in classes.items():
+        by_class.setdefault(cls, []).append(iid)
+    messages = []
+    for cls, ids in by_class.items():
+        if fraction <= 0 or len(ids) < 3:
+            continue
+        median = float(np.median([counts[i] for i in ids]))
+        for iid in sorted(ids):
+            if counts[iid] < fraction * median:
+                messages.append(
+                    f"instance {iid} ({cls}) holds {counts[iid]} Gaussians against a median of {median:.0f} for its "
+                    f"class: the base model barely holds it, so its masks will be poor (click it where the capture "
+                    f"sees it well, or train the base stage longer)")
+    return messages
 
 
 def make_masks(cfg: MasksCommand) -> Dict:

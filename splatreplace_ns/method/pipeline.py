@@ -324,6 +324,8 @@ class SplatReplacePipeline(VanillaPipeline):
         self.datamanager.reload_instance_masks()
         for message in report["skipped_clicks"]:
             CONSOLE.log(f"[bold yellow]masks: skipped {message}")
+        for message in report["sparse_instances"]:
+            CONSOLE.log(f"[bold yellow]masks: {message}")
         self.masks_report = {**report, "frames": len(masks), "time_s": time.perf_counter() - start}
         CONSOLE.log(
             f"[bold]masks: {len(instances)} instances in {len(masks)} frames written to {transforms.parent / 'masks'} "
