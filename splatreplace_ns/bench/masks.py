@@ -4,6 +4,8 @@ On a sim preset with the masks withheld (images, cameras, points and clicks only
 
 * per backend: mIoU and boundary F-score of the written masks over every frame, and the wall time of
   the masks after the base stage (the base stage's time is reported apart);
+* the ceiling (``oracle``): the same scores for masks rendered from each Gaussian's ground-truth label, what
+  the base model and the renderer allow whatever the clustering;
 * downstream: ``ns-train splat-replace`` (all stages, fine-tuning included) trained in process on the
   capture with our masks and on the same capture with the ground-truth masks; test-view segmentation mIoU
   and PSNR inside the ground-truth instance masks (the same pixels for both runs).
@@ -68,6 +70,9 @@ class BenchMasksConfig:
     downstream_contrastive_iterations: int = 500
     downstream_finetune_iterations: int = 500
     """Fine-tuning of the downstream runs: their masked PSNR is that of the replaced scene."""
+    oracle: bool = True
+    """Also score masks rendered from each Gaussian's ground-truth label (JSON ``oracle``): the ceiling that the
+    base model and the mask renderer set, whatever the clustering."""
     boundary_tolerance: int = 2
     """Boundary F-score: a boundary pixel matches within this many pixels."""
     data_root: Path = Path("benchmarks/data")
@@ -125,15 +130,70 @@ def read_masks(data: Path, frames: List[Dict]) -> np.ndarray:
 
 def score_masks(scene: Path, capture: Path, tolerance: int) -> Dict:
     """mIoU and boundary F of a capture's written masks against the scene's ground truth (every frame)."""
-    gt_meta = json.loads((scene / "transforms.json").read_text())
     ours_meta = json.loads((capture / "transforms.json").read_text())
+    return score_arrays(read_masks(capture, ours_meta["frames"]), scene, [f["file_path"] for f in ours_meta["frames"]],
+                        tolerance)
+
+
+def score_arrays(ours: np.ndarray, scene: Path, file_paths: List[str], tolerance: int) -> Dict:
+    """mIoU and boundary F of [F, H, W] masks (click k → id k + 1) of the frames ``file_paths`` against the
+    scene's ground truth of the same frames (matched by file name)."""
+    gt_meta = json.loads((scene / "transforms.json").read_text())
+    by_name = {Path(f["file_path"]).name: f for f in gt_meta["frames"]}
+    gt = read_masks(scene, [by_name[Path(p).name] for p in file_paths])
     clicks = json.loads((scene / "clicks.json").read_text())
     pred_to_gt = {k + 1: int(c["id"]) for k, c in enumerate(clicks)}
-    gt = read_masks(scene, gt_meta["frames"])
-    ours = read_masks(capture, ours_meta["frames"])
     seg = segmentation_scores(torch.from_numpy(ours.astype(np.int64)), torch.from_numpy(gt.astype(np.int64)), pred_to_gt)
     bf = boundary_f_score(ours, gt, pred_to_gt, tolerance)
     return {"miou": seg["miou"], "iou": seg["iou"], "boundary_f": bf["boundary_f"], "boundary_f_per_instance": bf["per_instance"]}
+
+
+@torch.no_grad()
+def oracle_masks(base_config: Path, capture: Path, scene: Path, depth_tolerance: float = 0.05) -> Tuple[np.ndarray, List[str]]:
+    """Masks rendered from each Gaussian's ground-truth label: the best the base model and the mask renderer
+    allow, whatever the clustering and the split.
+
+    A Gaussian's label is the majority of the scene's ground-truth masks at its centre over the frames that
+    see it (:func:`~splatreplace_ns.segment.gt_labels.labels_from_masks`, visibility by the rendered depth);
+    the instance of click k (id k + 1, as in the written masks) is the Gaussians labelled with that click's
+    ground-truth id, rendered exactly as the geometric backend renders its instances (no border cleanup).
+
+    Returns:
+        [F, H, W] uint16 masks and the frames' file paths, in the capture's frame order.
+    """
+    from splatreplace_ns.masks.base import frame_cameras, load_base
+    from splatreplace_ns.masks.lifting import view_and_intrinsics
+    from splatreplace_ns.masks.render import BorderConfig, render_instance_masks
+    from splatreplace_ns.segment.gt_labels import labels_from_masks
+
+    transforms = capture / "transforms.json"
+    base = load_base(base_config, transforms)
+    model = base.model
+    model.eval()
+    frames = frame_cameras(transforms, base.dataparser_transform, base.dataparser_scale, base.downscale)
+    gt_meta = json.loads((scene / "transforms.json").read_text())
+    by_name = {Path(f["file_path"]).name: f for f in gt_meta["frames"]}
+    gt = torch.from_numpy(read_masks(scene, [by_name[Path(p).name] for p in frames.file_paths]).astype(np.int64))
+    ones = torch.ones(model.num_points, 1, device=model.device)
+    viewmats, Ks, depths = [], [], []
+    for index in range(len(frames.file_paths)):
+        camera = frames.cameras[index : index + 1].to(model.device)
+        viewmat, K, width, height = view_and_intrinsics(camera)
+        _, alpha, depth = model.render_features(camera, ones)
+        viewmats.append(viewmat.cpu())
+        Ks.append(K.cpu())
+        depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])).cpu())
+    if tuple(gt.shape[1:]) != (height, width):  # a downscaled capture: vote on masks of the rendered size
+        gt = torch.nn.functional.interpolate(gt[:, None].float(), size=(height, width), mode="nearest")[:, 0].long()
+    labels = labels_from_masks(model.means.detach().cpu(), torch.stack(viewmats).float(), torch.stack(Ks).float(),
+                               width, height, gt, torch.stack(depths), depth_tolerance)
+    clicks = json.loads((scene / "clicks.json").read_text())
+    instance = torch.zeros_like(labels)
+    for k, click in enumerate(clicks):
+        instance[labels == int(click["id"])] = k + 1
+    masks = [render_instance_masks(model, frames.cameras[i : i + 1].to(model.device), instance, len(clicks), None,
+                                   BorderConfig(method="none")) for i in range(len(frames.file_paths))]
+    return np.stack(masks), list(frames.file_paths)
 
 
 # ----------------------------------------------------------------------------- runs
@@ -247,6 +307,14 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
                      "skipped_clicks": report["skipped_clicks"], "sparse_instances": report["sparse_instances"]})
         first_capture = first_capture or capture
 
+    oracle = None
+    if cfg.oracle and first_capture is not None:
+        start = time.perf_counter()
+        masks, file_paths = oracle_masks(base_config, first_capture, scene)
+        scores = score_arrays(masks, scene, file_paths, cfg.boundary_tolerance)
+        oracle = {"miou": scores["miou"], "boundary_f": scores["boundary_f"], "iou_per_instance": scores["iou"],
+                  "time_s": time.perf_counter() - start}
+
     downstream: Dict = {"psnr_masked_gt_masks": None, "psnr_masked_our_masks": None}
     if cfg.downstream and first_capture is not None:
         reference = with_ground_truth_masks(scene, first_capture, root / "gt_masks")
@@ -273,6 +341,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         "benchmark": "masks",
         "preset": cfg.preset,
         "rows": rows,
+        "oracle": oracle,
         "downstream": downstream,
         "base": {"config": str(base_config), "time_s": base_s, "reused": cfg.load_config is not None},
         "parameters": {
@@ -299,6 +368,10 @@ def print_table(result: Dict) -> None:
         table.add_column(col)
     for row in result["rows"]:
         table.add_row(row["backend"], f"{row['miou']:.4f}", f"{row['boundary_f']:.4f}", f"{row['time_s']:.1f}")
+    oracle = result.get("oracle")
+    if oracle:
+        table.add_row("ceiling (ground-truth label of every Gaussian)", f"{oracle['miou']:.4f}",
+                      f"{oracle['boundary_f']:.4f}", f"{oracle['time_s']:.1f}")
     Console().print(table)
     for row in result["rows"]:
         for message in row.get("skipped_clicks", []):
