@@ -893,3 +893,29 @@ def test_sparse_instances_names_the_copies_the_base_model_barely_holds():
     assert len(messages) == 1 and messages[0].startswith("instance 1 (pillar) holds 120 Gaussians against a median of 2700")
     assert len(sparse_instances(counts, classes, 0.5)) == 2  # 800 < 0.5 × 2700 too
     assert sparse_instances(counts, classes, 0.0) == []
+
+
+def test_size_cut_across_the_floor_drops_a_strip_of_beam_within_a_columns_height():
+    """Three upright posts (0.2 wide, 1 tall) clicked at mid-height; one instance also holds a strip of the
+    beam above it, 0.5 to the side: within the post's 3D size (about 1.05) from its click, but beyond its
+    width across the floor. With the floor's normal the strip goes to the background and the posts stay whole;
+    without it the strip stays."""
+    from splatreplace_ns.masks.clustering import cut_beyond_class_size, floor_normal
+    from splatreplace_ns.masks.lifting import LiftedClick
+
+    rng = np.random.default_rng(0)
+    posts = [np.c_[rng.uniform(x - 0.1, x + 0.1, 500), rng.uniform(-0.1, 0.1, 500), rng.uniform(0, 1, 500)] for x in (0, 2, 4)]
+    strip = np.c_[rng.uniform(0.4, 0.6, 60), rng.uniform(-0.1, 0.1, 60), rng.uniform(0.95, 1.0, 60)]
+    means = np.concatenate(posts + [strip])
+    ids = np.concatenate([np.full(500, 1), np.full(500, 2), np.full(500, 3), np.full(60, 1)])
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.0, 0.5], dtype=torch.float64), f"click {k}")
+              for k, x in enumerate((0, 2, 4))]
+    opacities = np.ones(len(means))
+    plain = cut_beyond_class_size(ids, means, opacities, clicks, ClusteringConfig())
+    assert (plain == ids).all()
+    up = floor_normal([np.array([0.0, 0.05, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, -3.0])])
+    np.testing.assert_allclose(up, np.array([0.0, 0.05, 1.0]) / np.linalg.norm([0.0, 0.05, 1.0]))
+    across = cut_beyond_class_size(ids, means, opacities, clicks, ClusteringConfig(), up)
+    assert (across[1500:] == 0).all() and (across[:1500] == ids[:1500]).all()
+    assert floor_normal([np.array([1.0, 0.0, 0.0, -3.0])]) is None  # walls only: no floor
+    assert floor_normal([np.array([0.0, 0.0, -2.0, 1.0])])[2] == 1.0  # pointing up whatever the plane's sign
