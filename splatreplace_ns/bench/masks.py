@@ -162,8 +162,8 @@ def oracle_masks(base_config: Path, capture: Path, scene: Path, depth_tolerance:
         [F, H, W] uint16 masks and the frames' file paths, in the capture's frame order.
     """
     from splatreplace_ns.masks.base import frame_cameras, load_base
-    from splatreplace_ns.masks.lifting import view_and_intrinsics
     from splatreplace_ns.masks.render import BorderConfig, render_instance_masks
+    from splatreplace_ns.masks.viewer_clicks import render_frames
     from splatreplace_ns.segment.gt_labels import labels_from_masks
 
     transforms = capture / "transforms.json"
@@ -174,25 +174,24 @@ def oracle_masks(base_config: Path, capture: Path, scene: Path, depth_tolerance:
     gt_meta = json.loads((scene / "transforms.json").read_text())
     by_name = {Path(f["file_path"]).name: f for f in gt_meta["frames"]}
     gt = torch.from_numpy(read_masks(scene, [by_name[Path(p).name] for p in frames.file_paths]).astype(np.int64))
-    ones = torch.ones(model.num_points, 1, device=model.device)
-    viewmats, Ks, depths = [], [], []
-    for index in range(len(frames.file_paths)):
-        camera = frames.cameras[index : index + 1].to(model.device)
-        viewmat, K, width, height = view_and_intrinsics(camera)
-        _, alpha, depth = model.render_features(camera, ones)
-        viewmats.append(viewmat.cpu())
-        Ks.append(K.cpu())
-        depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])).cpu())
-    if tuple(gt.shape[1:]) != (height, width):  # a downscaled capture: vote on masks of the rendered size
+    renders = render_frames(model, frames)
+    depths = torch.stack([torch.where(a[..., 0] > 0, d[..., 0], torch.zeros_like(d[..., 0]))
+                          for a, d in zip(renders.alphas, renders.depths)])
+    height, width = depths.shape[1:]
+    full_size = tuple(gt.shape[1:])
+    if full_size != (height, width):  # a downscaled capture: vote on masks of the rendered size
         gt = torch.nn.functional.interpolate(gt[:, None].float(), size=(height, width), mode="nearest")[:, 0].long()
-    labels = labels_from_masks(model.means.detach().cpu(), torch.stack(viewmats).float(), torch.stack(Ks).float(),
-                               width, height, gt, torch.stack(depths), depth_tolerance)
+    labels = labels_from_masks(model.means.detach().cpu(), torch.stack(renders.viewmats).float(),
+                               torch.stack(renders.Ks).float(), width, height, gt, depths, depth_tolerance)
     clicks = json.loads((scene / "clicks.json").read_text())
     instance = torch.zeros_like(labels)
     for k, click in enumerate(clicks):
         instance[labels == int(click["id"])] = k + 1
     masks = [render_instance_masks(model, frames.cameras[i : i + 1].to(model.device), instance, len(clicks), None,
                                    BorderConfig(method="none")) for i in range(len(frames.file_paths))]
+    # scored against the full-size ground truth, as the written masks are
+    masks = [cv2.resize(m, full_size[::-1], interpolation=cv2.INTER_NEAREST) if m.shape != full_size else m
+             for m in masks]
     return np.stack(masks), list(frames.file_paths)
 
 

@@ -901,14 +901,13 @@ def cut_beyond_class_size(
         [N] ids with the far Gaussians set to 0.
     """
     click_points = np.stack([click.point.double().numpy() for click in clicks]) if len(clicks) else np.zeros((0, 3))
-    out = cut_by_size(ids, means, click_points, opacities >= cfg.min_opacity, [c.cls for c in clicks],
-                      cfg.class_size_cut)
+    solid, classes = opacities >= cfg.min_opacity, [c.cls for c in clicks]
+    out = cut_by_size(ids, means, click_points, solid, classes, cfg.class_size_cut)
     if up is not None:
         across = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
         across /= np.linalg.norm(across)
         floor = np.stack([across, np.cross(up, across)], axis=1)  # [3, 2] basis of the floor's plane
-        out = cut_by_size(out, means @ floor, click_points @ floor, opacities >= cfg.min_opacity,
-                          [c.cls for c in clicks], cfg.class_size_cut)
+        out = cut_by_size(out, means @ floor, click_points @ floor, solid, classes, cfg.class_size_cut)
     return out
 
 
