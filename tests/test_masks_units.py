@@ -919,3 +919,95 @@ def test_size_cut_across_the_floor_drops_a_strip_of_beam_within_a_columns_height
     assert (across[1500:] == 0).all() and (across[:1500] == ids[:1500]).all()
     assert floor_normal([np.array([1.0, 0.0, 0.0, -3.0])]) is None  # walls only: no floor
     assert floor_normal([np.array([0.0, 0.0, -2.0, 1.0])])[2] == 1.0  # pointing up whatever the plane's sign
+
+
+def _box(rng, lo, hi, n):
+    return rng.uniform(lo, hi, (n, 3))
+
+
+def _table_at(rng, x0):
+    """A table (top 0.85–0.9 high, 1 × 0.5) on four thin legs standing on the floor z = 0."""
+    parts = [_box(rng, [x0 - 0.5, 0, 0.85], [x0 + 0.5, 0.5, 0.9], 1500)]
+    for dx in (-0.45, 0.41):
+        for dy in (0.0, 0.46):
+            parts.append(_box(rng, [x0 + dx, dy, 0.0], [x0 + dx + 0.04, dy + 0.04, 0.85], 120))
+    return np.concatenate(parts)
+
+
+def _chair_at(rng, x0, y0):
+    """A chair: seat 0.45–0.5 high on four legs, its back plate (x0 − 0.05 … x0) rising to 1.3."""
+    parts = [_box(rng, [x0 - 0.5, y0, 0.45], [x0 - 0.05, y0 + 0.5, 0.5], 700),
+             _box(rng, [x0 - 0.05, y0, 0.45], [x0, y0 + 0.5, 1.3], 800)]
+    for dx in (-0.5, -0.1):
+        for dy in (0.0, 0.46):
+            parts.append(_box(rng, [x0 + dx, y0 + dy, 0.0], [x0 + dx + 0.04, y0 + dy + 0.04, 0.45], 70))
+    return np.concatenate(parts)
+
+
+def test_a_chair_back_rising_above_the_table_it_touches_is_the_chairs():
+    """A chair whose back touches the edge of a table top and rises 0.4 above it, everything one wood colour,
+    beside two more tables and two more chairs standing alone. The walk gives the back's upper part to the
+    table (its contact with the top is as wide as the back, and nearer than the seat). Copies stand on the floor,
+    so a table's points end at the tables' top height: with ``split_height_margin`` the part above it goes to
+    the chair; off (0), it stays the table's."""
+    from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
+
+    rng = np.random.default_rng(0)
+    parts = [_chair_at(rng, -0.5, 0.0), _table_at(rng, 0.0), _table_at(rng, 3.0), _table_at(rng, 6.0),
+             _chair_at(rng, 3.0, 2.0), _chair_at(rng, 6.0, 2.0)]
+    means = np.concatenate(parts)
+    truth = np.repeat(np.arange(1, 7), [len(p) for p in parts])
+    colours = np.clip(np.full((len(means), 3), [0.55, 0.4, 0.25]) + rng.normal(0, 0.02, (len(means), 3)), 0, 1)
+    # the first chair and table are one cluster, every other copy its own
+    clustering = Clustering(np.maximum(truth - 2, 0), float(np.median(kth_neighbour_distances(means, 8))),
+                            [np.array([0.0, 0.0, 1.0, 0.0])])
+    at = [(-0.8, 0.25, 0.48), (0.0, 0.25, 0.88), (3.0, 0.25, 0.88), (6.0, 0.25, 0.88), (2.8, 2.25, 0.48), (5.8, 2.25, 0.48)]
+    classes = ["chair", "table", "table", "table", "chair", "chair"]
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), c, torch.tensor(p, dtype=torch.float64), f"click {k}")
+              for k, (p, c) in enumerate(zip(at, classes))]
+    opacities = np.ones(len(means))
+    upper_back = (truth == 1) & (means[:, 2] > 0.95)
+    off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_margin=0.0))
+    on = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_margin=0.5))
+    assert (off[upper_back] == 2).all()
+    assert (on[upper_back] == 1).mean() > 0.9
+    assert (on == truth).mean() > (off == truth).mean() + 0.02
+    assert (on[truth == 2] == 2).mean() >= (off[truth == 2] == 2).mean()  # the table loses nothing of its own
+
+
+def test_what_lies_under_the_floor_or_on_it_away_from_the_feet_goes_to_the_background():
+    """A table labelled with floaters from under the floor, a patch of floor beside a leg and one under its
+    top (all within ``floor_band`` spacings above the floor): those go, its legs' feet and the top stay. With
+    both parts off nothing changes."""
+    from splatreplace_ns.masks.clustering import cut_off_the_floor
+
+    rng = np.random.default_rng(1)
+    spacing = 0.02
+    table = _table_at(rng, 0.0)
+    under = _box(rng, [-0.3, 0.1, -0.3], [0.3, 0.4, -0.1], 150)  # more than 2 spacings under the floor
+    beside = _box(rng, [-0.8, 0.0, 0.0], [-0.6, 0.5, 0.03], 150)  # 0.15 from the nearest leg
+    below_top = _box(rng, [-0.2, 0.1, 0.0], [0.2, 0.4, 0.03], 150)  # under the top, far from every leg
+    means = np.concatenate([table, under, beside, below_top])
+    ids = np.ones(len(means), dtype=np.int64)
+    floor = np.array([0.0, 0.0, 1.0, 0.0])
+    out = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0)
+    assert (out[: len(table)] == 1).all()  # feet (the lowest 0.04 of each leg) included
+    assert (out[len(table):] == 0).all()
+    assert (cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=0.0, reach=2.0, support=3.0) == ids).all()
+    only_under = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=0.0, reach=2.0, support=3.0)
+    assert (only_under[len(table) : len(table) + 150] == 0).all() and (only_under[len(table) + 150 :] == 1).all()
+
+
+def test_the_floor_is_the_lowest_level_plane():
+    """Two level planes (the floor at z = 0 and a sheet at z = 0.5) and a wall: with the points the floor is
+    the one with the fewest points under it, pointing up whatever its sign; without them the one nearest +z."""
+    from splatreplace_ns.masks.clustering import floor_plane
+
+    rng = np.random.default_rng(2)
+    points = np.c_[rng.uniform(-1, 1, (500, 2)), rng.uniform(0.0, 1.0, 500)]
+    planes = [np.array([0.0, 0.01, -1.0, 0.5]), np.array([0.0, 0.0, -2.0, 0.0]), np.array([1.0, 0.0, 0.0, -3.0])]
+    floor = floor_plane(planes, points=points)
+    np.testing.assert_allclose(floor, [0.0, 0.0, 1.0, 0.0])
+    assert floor_plane(planes)[3] == pytest.approx(0.0) and floor_plane(planes)[2] == 1.0  # nearest +z: the floor too
+    assert floor_plane(planes[:1] + planes[2:], points=points)[3] == pytest.approx(-0.5, abs=0.01)
+    assert floor_plane([planes[2]], points=points) is None
