@@ -1011,3 +1011,23 @@ def test_the_floor_is_the_lowest_level_plane():
     assert floor_plane(planes)[3] == pytest.approx(0.0) and floor_plane(planes)[2] == 1.0  # nearest +z: the floor too
     assert floor_plane(planes[:1] + planes[2:], points=points)[3] == pytest.approx(-0.5, abs=0.01)
     assert floor_plane([planes[2]], points=points) is None
+
+
+def test_a_copy_on_a_step_has_its_bands_measured_from_the_step():
+    """The same table and patches as above, all raised by 0.4 onto a step: measured from the floor every
+    patch is too high to be cut; with the step as the table's ground (``ground``) the same ones go."""
+    from splatreplace_ns.masks.clustering import cut_off_the_floor
+
+    rng = np.random.default_rng(1)
+    spacing, lift = 0.02, np.array([0.0, 0.0, 0.4])
+    table = _table_at(rng, 0.0) + lift
+    beside = _box(rng, [-0.8, 0.0, 0.0], [-0.6, 0.5, 0.03], 150) + lift
+    below_top = _box(rng, [-0.2, 0.1, 0.0], [0.2, 0.4, 0.03], 150) + lift
+    means = np.concatenate([table, beside, below_top])
+    ids = np.ones(len(means), dtype=np.int64)
+    floor = np.array([0.0, 0.0, 1.0, 0.0])
+    from_floor = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0)
+    assert (from_floor == 1).all()
+    from_step = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0,
+                                  ground={1: 0.4 / spacing})
+    assert (from_step[: len(table)] == 1).all() and (from_step[len(table):] == 0).all()
