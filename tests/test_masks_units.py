@@ -1031,3 +1031,26 @@ def test_a_copy_on_a_step_has_its_bands_measured_from_the_step():
     from_step = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0,
                                   ground={1: 0.4 / spacing})
     assert (from_step[: len(table)] == 1).all() and (from_step[len(table):] == 0).all()
+
+
+def test_faint_fuzz_above_the_band_does_not_hold_up_the_fuzz_under_it():
+    """A patch of floor beside the table's legs, within the band, under a faint layer of fuzz just above the
+    band: counted as support, the faint layer keeps the patch; only opaque Gaussians holding feet up, the patch
+    goes and the table stays whole."""
+    from splatreplace_ns.masks.clustering import cut_off_the_floor
+
+    rng = np.random.default_rng(4)
+    spacing = 0.02
+    table = _table_at(rng, 0.0)
+    patch = _box(rng, [-0.8, 0.0, 0.0], [-0.6, 0.5, 0.03], 150)
+    faint = _box(rng, [-0.8, 0.0, 0.042], [-0.6, 0.5, 0.05], 600)  # 2.1–2.5 spacings high
+    means = np.concatenate([table, patch, faint])
+    opacities = np.concatenate([np.ones(len(table) + len(patch)), np.full(len(faint), 0.2)])
+    ids = np.ones(len(means), dtype=np.int64)
+    floor = np.array([0.0, 0.0, 1.0, 0.0])
+    args = dict(below=2.0, low=2.0, reach=2.0, support=3.0)
+    every = cut_off_the_floor(ids, means, floor, spacing, **args)
+    assert (every == 1).all()
+    opaque = cut_off_the_floor(ids, means, floor, spacing, **args, holds=opacities >= 0.5)
+    n = len(table)
+    assert (opaque[:n] == 1).all() and (opaque[n : n + 150] == 0).all() and (opaque[n + 150 :] == 1).all()
