@@ -968,7 +968,8 @@ def test_a_chair_back_rising_above_the_table_it_touches_is_the_chairs():
     opacities = np.ones(len(means))
     upper_back = (truth == 1) & (means[:, 2] > 0.95)
     off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_margin=0.0))
-    on = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_margin=0.5))
+    on = instance_ids(clicks, means, opacities, colours, clustering,
+                      ClusteringConfig(split_height_margin=0.5, split_height_reseed=0.0))
     assert (off[upper_back] == 2).all()
     assert (on[upper_back] == 1).mean() > 0.9
     assert (on == truth).mean() > (off == truth).mean() + 0.02
@@ -1054,3 +1055,35 @@ def test_faint_fuzz_above_the_band_does_not_hold_up_the_fuzz_under_it():
     opaque = cut_off_the_floor(ids, means, floor, spacing, **args, holds=opacities >= 0.5)
     n = len(table)
     assert (opaque[:n] == 1).all() and (opaque[n : n + 150] == 0).all() and (opaque[n + 150 :] == 1).all()
+
+
+def test_the_rest_of_the_back_follows_its_top_when_the_cluster_is_walked_again():
+    """The scene above: the height test gives the back's top to the chair, but the part of the back below the
+    table's top stays partly the table's. Walked again with the settled top as the chair's seeds, the points
+    under it follow (``split_height_reseed``); the table keeps its top but a strip along the back."""
+    from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
+
+    rng = np.random.default_rng(0)
+    parts = [_chair_at(rng, -0.5, 0.0), _table_at(rng, 0.0), _table_at(rng, 3.0), _table_at(rng, 6.0),
+             _chair_at(rng, 3.0, 2.0), _chair_at(rng, 6.0, 2.0)]
+    means = np.concatenate(parts)
+    truth = np.repeat(np.arange(1, 7), [len(p) for p in parts])
+    colours = np.clip(np.full((len(means), 3), [0.55, 0.4, 0.25]) + rng.normal(0, 0.02, (len(means), 3)), 0, 1)
+    clustering = Clustering(np.maximum(truth - 2, 0), float(np.median(kth_neighbour_distances(means, 8))),
+                            [np.array([0.0, 0.0, 1.0, 0.0])])
+    at = [(-0.8, 0.25, 0.48), (0.0, 0.25, 0.88), (3.0, 0.25, 0.88), (6.0, 0.25, 0.88), (2.8, 2.25, 0.48), (5.8, 2.25, 0.48)]
+    classes = ["chair", "table", "table", "table", "chair", "chair"]
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), c, torch.tensor(p, dtype=torch.float64), f"click {k}")
+              for k, (p, c) in enumerate(zip(at, classes))]
+    opacities = np.ones(len(means))
+    lower_back = (truth == 1) & (means[:, 0] > -0.55) & (means[:, 2] > 0.5) & (means[:, 2] < 0.85)
+    once = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_reseed=0.0))
+    again = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_reseed=1.0))
+    assert (once[lower_back] == 2).mean() > 0.2
+    assert (again[lower_back] == 1).all()
+    assert (again[truth == 1] == 1).mean() > 0.97 > (once[truth == 1] == 1).mean()
+    table = truth == 2
+    assert (again[table] == 2).mean() > 0.9
+    taken = table & (again == 1)
+    assert np.abs(means[taken, 0] - (-0.5)).max() < 0.1  # only along the back
+    assert (again == truth).mean() > (once == truth).mean() + 0.01
