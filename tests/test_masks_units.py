@@ -900,7 +900,7 @@ def test_size_cut_across_the_floor_drops_a_strip_of_beam_within_a_columns_height
     beam above it, 0.5 to the side: within the post's 3D size (about 1.05) from its click, but beyond its
     width across the floor. With the floor's normal the strip goes to the background and the posts stay whole;
     without it the strip stays."""
-    from splatreplace_ns.masks.clustering import cut_beyond_class_size, floor_normal
+    from splatreplace_ns.masks.clustering import cut_beyond_class_size, floor_plane
     from splatreplace_ns.masks.lifting import LiftedClick
 
     rng = np.random.default_rng(0)
@@ -913,12 +913,12 @@ def test_size_cut_across_the_floor_drops_a_strip_of_beam_within_a_columns_height
     opacities = np.ones(len(means))
     plain = cut_beyond_class_size(ids, means, opacities, clicks, ClusteringConfig())
     assert (plain == ids).all()
-    up = floor_normal([np.array([0.0, 0.05, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, -3.0])])
+    up = floor_plane([np.array([0.0, 0.05, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, -3.0])])[:3]
     np.testing.assert_allclose(up, np.array([0.0, 0.05, 1.0]) / np.linalg.norm([0.0, 0.05, 1.0]))
     across = cut_beyond_class_size(ids, means, opacities, clicks, ClusteringConfig(), up)
     assert (across[1500:] == 0).all() and (across[:1500] == ids[:1500]).all()
-    assert floor_normal([np.array([1.0, 0.0, 0.0, -3.0])]) is None  # walls only: no floor
-    assert floor_normal([np.array([0.0, 0.0, -2.0, 1.0])])[2] == 1.0  # pointing up whatever the plane's sign
+    assert floor_plane([np.array([1.0, 0.0, 0.0, -3.0])]) is None  # walls only: no floor
+    assert floor_plane([np.array([0.0, 0.0, -2.0, 1.0])])[2] == 1.0  # pointing up whatever the plane's sign
 
 
 def _box(rng, lo, hi, n):

@@ -1049,7 +1049,7 @@ def cut_beyond_class_size(
         ids: [N] instance id per Gaussian (click position + 1, 0 = background).
         means: [N, 3]; opacities: [N] in [0, 1].
         clicks: the lifted clicks, in id order.
-        up: [3] unit normal of the floor (:func:`floor_normal`), or None.
+        up: [3] unit normal of the floor (:func:`floor_plane`), or None.
 
     Returns:
         [N] ids with the far Gaussians set to 0.
@@ -1128,13 +1128,6 @@ def floor_plane(planes: Sequence[np.ndarray], prior: Sequence[float] = (0.0, 0.0
         if best_key is None or key < best_key:
             best, best_key = plane, key
     return best
-
-
-def floor_normal(planes: Sequence[np.ndarray], prior: Sequence[float] = (0.0, 0.0, 1.0),
-                 max_tilt_deg: float = 30.0) -> Optional[np.ndarray]:
-    """[3] unit normal of :func:`floor_plane`, pointing up; None without a floor."""
-    plane = floor_plane(planes, prior, max_tilt_deg)
-    return None if plane is None else plane[:3]
 
 
 def cut_off_the_floor(
