@@ -944,12 +944,11 @@ def _chair_at(rng, x0, y0):
     return np.concatenate(parts)
 
 
-def test_a_chair_back_rising_above_the_table_it_touches_is_the_chairs():
+def _chair_tucked_under_a_table():
     """A chair whose back touches the edge of a table top and rises 0.4 above it, everything one wood colour,
-    beside two more tables and two more chairs standing alone. The walk gives the back's upper part to the
-    table (its contact with the top is as wide as the back, and nearer than the seat). Copies stand on the floor,
-    so a table's points end at the tables' top height: with ``split_height_margin`` the part above it goes to
-    the chair; off (0), it stays the table's."""
+    beside two more tables and two more chairs standing alone on the floor z = 0; the first chair and table are
+    one cluster, every other copy its own. Returns means, truth (1 the chair, 2 its table), colours, opacities,
+    the clustering and one click per copy."""
     from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
 
     rng = np.random.default_rng(0)
@@ -958,14 +957,22 @@ def test_a_chair_back_rising_above_the_table_it_touches_is_the_chairs():
     means = np.concatenate(parts)
     truth = np.repeat(np.arange(1, 7), [len(p) for p in parts])
     colours = np.clip(np.full((len(means), 3), [0.55, 0.4, 0.25]) + rng.normal(0, 0.02, (len(means), 3)), 0, 1)
-    # the first chair and table are one cluster, every other copy its own
     clustering = Clustering(np.maximum(truth - 2, 0), float(np.median(kth_neighbour_distances(means, 8))),
                             [np.array([0.0, 0.0, 1.0, 0.0])])
     at = [(-0.8, 0.25, 0.48), (0.0, 0.25, 0.88), (3.0, 0.25, 0.88), (6.0, 0.25, 0.88), (2.8, 2.25, 0.48), (5.8, 2.25, 0.48)]
     classes = ["chair", "table", "table", "table", "chair", "chair"]
     clicks = [LiftedClick(k, 0, (0.0, 0.0), c, torch.tensor(p, dtype=torch.float64), f"click {k}")
               for k, (p, c) in enumerate(zip(at, classes))]
-    opacities = np.ones(len(means))
+    return means, truth, colours, np.ones(len(means)), clustering, clicks
+
+
+def test_a_chair_back_rising_above_the_table_it_touches_is_the_chairs():
+    """A chair whose back touches the edge of a table top and rises 0.4 above it, everything one wood colour,
+    beside two more tables and two more chairs standing alone. The walk gives the back's upper part to the
+    table (its contact with the top is as wide as the back, and nearer than the seat). Copies stand on the floor,
+    so a table's points end at the tables' top height: with ``split_height_margin`` the part above it goes to
+    the chair; off (0), it stays the table's."""
+    means, truth, colours, opacities, clustering, clicks = _chair_tucked_under_a_table()
     upper_back = (truth == 1) & (means[:, 2] > 0.95)
     off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_margin=0.0))
     on = instance_ids(clicks, means, opacities, colours, clustering,
@@ -1061,21 +1068,7 @@ def test_the_rest_of_the_back_follows_its_top_when_the_cluster_is_walked_again()
     """The scene above: the height test gives the back's top to the chair, but the part of the back below the
     table's top stays partly the table's. Walked again with the settled top as the chair's seeds, the points
     under it follow (``split_height_reseed``); the table keeps its top but a strip along the back."""
-    from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
-
-    rng = np.random.default_rng(0)
-    parts = [_chair_at(rng, -0.5, 0.0), _table_at(rng, 0.0), _table_at(rng, 3.0), _table_at(rng, 6.0),
-             _chair_at(rng, 3.0, 2.0), _chair_at(rng, 6.0, 2.0)]
-    means = np.concatenate(parts)
-    truth = np.repeat(np.arange(1, 7), [len(p) for p in parts])
-    colours = np.clip(np.full((len(means), 3), [0.55, 0.4, 0.25]) + rng.normal(0, 0.02, (len(means), 3)), 0, 1)
-    clustering = Clustering(np.maximum(truth - 2, 0), float(np.median(kth_neighbour_distances(means, 8))),
-                            [np.array([0.0, 0.0, 1.0, 0.0])])
-    at = [(-0.8, 0.25, 0.48), (0.0, 0.25, 0.88), (3.0, 0.25, 0.88), (6.0, 0.25, 0.88), (2.8, 2.25, 0.48), (5.8, 2.25, 0.48)]
-    classes = ["chair", "table", "table", "table", "chair", "chair"]
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), c, torch.tensor(p, dtype=torch.float64), f"click {k}")
-              for k, (p, c) in enumerate(zip(at, classes))]
-    opacities = np.ones(len(means))
+    means, truth, colours, opacities, clustering, clicks = _chair_tucked_under_a_table()
     lower_back = (truth == 1) & (means[:, 0] > -0.55) & (means[:, 2] > 0.5) & (means[:, 2] < 0.85)
     once = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_reseed=0.0))
     again = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_reseed=1.0))
