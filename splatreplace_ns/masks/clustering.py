@@ -877,6 +877,12 @@ def instance_ids(
     # class → top (bottom) height of the points surely each of its instances' own
     tops: Dict[str, List[float]] = {}
     bottoms: Dict[str, List[float]] = {}
+
+    def note_heights(cls: str, own: np.ndarray) -> None:
+        if height is not None and len(own) >= 10:
+            tops.setdefault(cls, []).append(float(np.percentile(height[own], 98)))
+            bottoms.setdefault(cls, []).append(float(np.percentile(height[own], 2)))
+
     for cluster, positions in by_cluster.items():
         members = np.flatnonzero(clustering.labels == cluster)
         points = np.stack([clicks[p].point.double().numpy() for p in positions])
@@ -886,9 +892,7 @@ def instance_ids(
         if len(positions) == 1 and not len(floor_near):
             ids[members] = positions[0] + 1
             samples.setdefault(clicks[positions[0]].cls, []).append(colours[members])
-            if height is not None:
-                tops.setdefault(clicks[positions[0]].cls, []).append(float(np.percentile(height[members], 98)))
-                bottoms.setdefault(clicks[positions[0]].cls, []).append(float(np.percentile(height[members], 2)))
+            note_heights(clicks[positions[0]].cls, members)
             continue
         if cfg.split_method == "geodesic":
             _, seeds = cKDTree(means[members]).query(points, k=1)
@@ -905,9 +909,7 @@ def instance_ids(
         sure = sure_points(walk, cfg.colour_model_probability)
         for j, p in enumerate(positions):
             samples.setdefault(clicks[p].cls, []).append(colours[walked[sure == j]])
-            if height is not None and int((sure == j).sum()) >= 10:
-                tops.setdefault(clicks[p].cls, []).append(float(np.percentile(height[walked[sure == j]], 98)))
-                bottoms.setdefault(clicks[p].cls, []).append(float(np.percentile(height[walked[sure == j]], 2)))
+            note_heights(clicks[p].cls, walked[sure == j])
 
     # one colour model per class, from every instance of it in the scene: copies look alike, and an instance
     # half taken by its neighbour still has siblings elsewhere that show the class's colours
