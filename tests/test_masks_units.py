@@ -1080,3 +1080,139 @@ def test_the_rest_of_the_back_follows_its_top_when_the_cluster_is_walked_again()
     taken = table & (again == 1)
     assert np.abs(means[taken, 0] - (-0.5)).max() < 0.1  # only along the back
     assert (again == truth).mean() > (once == truth).mean() + 0.01
+
+
+def test_a_copys_run_of_heights_ends_where_the_scene_runs_on_beyond_its_footprint():
+    """A post (radius 3) standing on a floor under a beam. Its run of slices starts above the floor's band and
+    ends at the beam's underside; a slice inside the beam is no copy's. A table top another copy holds (not
+    counted) around the post's middle does not end the run; counted, it does. A capital a little wider than the
+    footprint ends the run without the ring's gap, not with it."""
+    from splatreplace_ns.masks.clustering import heights_within_footprint
+
+    rng = np.random.default_rng(0)
+
+    def disc(n, radius, z0, z1):
+        angle, r = rng.uniform(0, 2 * np.pi, n), radius * np.sqrt(rng.uniform(0, 1, n))
+        return np.c_[r * np.cos(angle), r * np.sin(angle), rng.uniform(z0, z1, n)]
+
+    post = disc(4000, 3.0, 0.0, 18.0)
+    capital = disc(600, 5.0, 18.0, 20.0)
+    beam = np.c_[rng.uniform(-30, 30, 12000), rng.uniform(-4, 4, 12000), rng.uniform(20, 24, 12000)]
+    floor = np.c_[rng.uniform(-30, 30, 20000), rng.uniform(-30, 30, 20000), rng.uniform(-0.5, 0.5, 20000)]
+    top = np.c_[rng.uniform(-12, 12, 3000), rng.uniform(-12, 12, 3000), rng.uniform(9, 10, 3000)]
+    points = np.concatenate([post, capital, beam, floor, top])
+    distance, height = np.linalg.norm(points[:, :2], axis=1), points[:, 2]
+    others = np.arange(len(points)) < len(points) - len(top)  # the table top is another copy's
+    run = dict(radius=4.0, slice_height=0.5, gap=2.0, ring=5.0, overflow=0.5)
+    assert heights_within_footprint(distance, height, others, start=5.0, **run) == (0.5, 20.0)
+    assert heights_within_footprint(distance, height, others, start=22.0, **run) == (22.0, 22.0)
+    counted = np.ones(len(points), dtype=bool)
+    assert heights_within_footprint(distance, height, counted, start=5.0, **run) == (0.5, 9.0)
+    assert heights_within_footprint(distance, height, others, start=5.0, **{**run, "gap": 0.0}) == (0.5, 18.0)
+
+
+def colonnade_with_wide_capitals():
+    """Five posts (shaft 0.2 wide, marble) with terracotta capitals 0.5 wide and plinths 0.36 wide, under a
+    cream beam and on a cream step running past both ends, on the floor z = 0: one cluster, a click at each
+    post's middle. Returns means, truth (post k → k + 1, 0 elsewhere), colours, opacities, the clustering and
+    the clicks."""
+    from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
+    from splatreplace_ns.masks.lifting import LiftedClick
+
+    rng = np.random.default_rng(0)
+
+    def block(lo, hi, density):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        return rng.uniform(lo, hi, (int(density * np.prod(hi - lo)), 3))
+
+    marble, terracotta, cream = [0.85, 0.83, 0.78], [0.75, 0.45, 0.3], [0.8, 0.78, 0.72]
+    xs = np.arange(5) - 2.0
+    parts, truth, colours = [], [], []
+    for k, x in enumerate(xs):
+        for lo, hi, colour in (([x - 0.1, -0.1, 0.15], [x + 0.1, 0.1, 0.92], marble),
+                               ([x - 0.25, -0.25, 0.92], [x + 0.25, 0.25, 1.0], terracotta),
+                               ([x - 0.18, -0.18, 0.1], [x + 0.18, 0.18, 0.15], terracotta)):
+            part = block(lo, hi, 40000)
+            parts.append(part), truth.append(np.full(len(part), k + 1)), colours.append(np.tile(colour, (len(part), 1)))
+    for lo, hi in (([-2.6, -0.3, 1.0], [2.6, 0.3, 1.3]), ([-2.6, -0.4, 0.0], [2.6, 0.4, 0.1])):
+        part = block(lo, hi, 20000)
+        parts.append(part), truth.append(np.zeros(len(part), dtype=np.int64)), colours.append(np.tile(cream, (len(part), 1)))
+    means = np.concatenate(parts)
+    colours = np.clip(np.concatenate(colours) + rng.normal(0, 0.02, means.shape), 0, 1)
+    clustering = Clustering(np.zeros(len(means), dtype=np.int64), float(np.median(kth_neighbour_distances(means, 8))),
+                            [np.array([0.0, 0.0, 1.0, 0.0])])
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.1, 0.55], dtype=torch.float64), f"click {k}")
+              for k, x in enumerate(xs)]
+    return means, np.concatenate(truth), colours, np.ones(len(means)), clustering, clicks
+
+
+def test_capitals_a_split_leaves_undecided_join_the_copy_whose_footprint_holds_them():
+    """The colonnade above: the walk reaches each capital from the neighbours through the beam as well and
+    leaves most of it undecided. With ``footprint_margin`` the part of each capital within its post's footprint
+    joins the post (every post's IoU up by 0.04 or more) while the beam and the step stay the background's;
+    off (0), the capitals stay lost."""
+    means, truth, colours, opacities, clustering, clicks = colonnade_with_wide_capitals()
+    capitals = (truth > 0) & (means[:, 2] >= 0.92)
+
+    def scores(cfg):
+        ids = instance_ids(clicks, means, opacities, colours, clustering, cfg)
+        ious = np.array([((ids == k) & (truth == k)).sum() / ((ids == k) | (truth == k)).sum() for k in range(1, 6)])
+        return ious, (ids[capitals] == truth[capitals]).mean(), (ids[truth == 0] > 0).mean()
+
+    on, capitals_on, taken_on = scores(ClusteringConfig())
+    off, capitals_off, taken_off = scores(ClusteringConfig(footprint_margin=0.0))
+    assert (on > off + 0.04).all(), (on, off)
+    assert capitals_on > capitals_off + 0.1, (capitals_on, capitals_off)
+    assert taken_on <= taken_off + 0.002, (taken_on, taken_off)
+
+
+def test_an_end_copys_strip_of_the_beam_goes_and_what_another_copy_holds_does_not_cut():
+    """Four posts (1 tall, radius 0.1) on the floor under a beam; the first post also holds the strip of the
+    beam above it and beside it, as an end column of a row does. With ``footprint_cut_above`` the strip goes
+    to the background and every post stays whole, the third one too, though it rises through a slab that
+    another click's copy (a table top of another class) holds; off, the strip stays. What a split left
+    undecided of the third post above that slab joins it: the slab is another copy's, so the post's run goes
+    on through it. A level sheet of another cluster through all four posts (a chess board's sheet at its
+    pieces' top height) does not end their runs."""
+    from splatreplace_ns.masks.clustering import claim_within_footprint
+    from splatreplace_ns.masks.lifting import LiftedClick
+
+    rng = np.random.default_rng(0)
+
+    def disc(n, x, radius, z0, z1):
+        angle, r = rng.uniform(0, 2 * np.pi, n), radius * np.sqrt(rng.uniform(0, 1, n))
+        return np.c_[x + r * np.cos(angle), r * np.sin(angle), rng.uniform(z0, z1, n)]
+
+    xs = (0.0, 1.0, 2.0, 3.0)
+    posts = [disc(1500, x, 0.1, 0.0, 1.0) for x in xs]
+    beam = np.c_[rng.uniform(-0.5, 3.5, 6000), rng.uniform(-0.15, 0.15, 6000), rng.uniform(1.0, 1.15, 6000)]
+    slab = np.c_[rng.uniform(1.6, 2.4, 2000), rng.uniform(-0.4, 0.4, 2000), rng.uniform(0.6, 0.63, 2000)]
+    sheet = np.c_[rng.uniform(-0.5, 3.5, 8000), rng.uniform(-0.5, 0.5, 8000), rng.uniform(0.9, 0.91, 8000)]
+    means = np.concatenate(posts + [beam, slab, sheet])
+    ids = np.concatenate([np.full(1500, k + 1) for k in range(4)]
+                         + [np.zeros(6000, dtype=np.int64), np.full(2000, 5), np.zeros(8000, dtype=np.int64)])
+    strip = 6000 + np.flatnonzero(np.abs(beam[:, 0]) < 0.4)
+    ids[strip] = 1
+    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.1, 0.5], dtype=torch.float64), f"click {k}")
+              for k, x in enumerate(xs)]
+    clicks.append(LiftedClick(4, 0, (0.0, 0.0), "table", torch.tensor([2.0, 0.3, 0.62], dtype=torch.float64), "click 4"))
+    floor = np.array([0.0, 0.0, 1.0, 0.0])
+    undecided = np.zeros(len(means), dtype=bool)
+    upper = 3000 + np.flatnonzero(means[3000:4500, 2] > 0.8)  # the third post's top, left undecided
+    undecided[upper] = True
+    ids[upper] = 0
+    spacing = 0.02
+    labels = np.where(np.arange(len(means)) < len(means) - len(sheet), 0, 1)  # the sheet: another cluster
+    clusters = (labels, [0] * 5)
+    out = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, *clusters, floor, spacing,
+                                 ClusteringConfig())
+    assert (out[strip] == 0).all()
+    assert all((out[k * 1500 : (k + 1) * 1500] == k + 1).all() for k in range(4))
+    assert (out[6000 + 6000 : 6000 + 8000] == 5).all()
+    # counted as the copies' own cluster, the sheet through all four posts would end their runs
+    one = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, np.zeros_like(labels), [0] * 5,
+                                 floor, spacing, ClusteringConfig())
+    assert (one[:6000][means[:6000, 2] > 0.92] == 0).all()
+    off = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, *clusters, floor, spacing,
+                                 ClusteringConfig(footprint_cut_above=False))
+    assert (off[strip] == 1).all() and (off[upper] == 3).all()
