@@ -1216,3 +1216,24 @@ def test_an_end_copys_strip_of_the_beam_goes_and_what_another_copy_holds_does_no
     off = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, *clusters, floor, spacing,
                                  ClusteringConfig(footprint_cut_above=False))
     assert (off[strip] == 1).all() and (off[upper] == 3).all()
+
+
+def test_pieces_the_cuts_left_apart_from_an_instance_go_to_the_background():
+    """A table whose cluster also held two patches of floor fuzz, linked to a leg's foot only through the band
+    the floor cut removed: the patches, 5 spacings from the foot, go; the table stays whole, and a second
+    instance far away is untouched. With ``min_fraction`` a piece at least that fraction of the largest stays."""
+    from splatreplace_ns.masks.clustering import keep_the_largest_piece, kth_neighbour_distances
+
+    rng = np.random.default_rng(2)
+    table = _table_at(rng, 0.0)
+    spacing = float(np.median(kth_neighbour_distances(table, 8)))
+    patches = [_box(rng, [-0.45 - 7 * spacing, 0.0, 0.02], [-0.45 - 5 * spacing, 0.04, 0.04], 30),
+               _box(rng, [0.45 + 9 * spacing, 0.46, 0.02], [0.45 + 11 * spacing, 0.5, 0.04], 30)]
+    other = _table_at(rng, 3.0)
+    means = np.concatenate([table] + patches + [other])
+    ids = np.concatenate([np.full(len(table) + 60, 1), np.full(len(other), 2)])
+    out = keep_the_largest_piece(ids, means, 2 * spacing)
+    assert (out[: len(table)] == 1).all() and (out[len(table) : len(table) + 60] == 0).all()
+    assert (out[len(table) + 60 :] == 2).all()
+    kept = keep_the_largest_piece(ids, means, 2 * spacing, min_fraction=0.005)
+    assert (kept == ids).all()
