@@ -1237,3 +1237,25 @@ def test_pieces_the_cuts_left_apart_from_an_instance_go_to_the_background():
     assert (out[len(table) + 60 :] == 2).all()
     kept = keep_the_largest_piece(ids, means, 2 * spacing, min_fraction=0.005)
     assert (kept == ids).all()
+
+
+def test_what_lies_low_beside_an_object_and_not_under_it_goes_to_the_background():
+    """A table labelled with two patches of fuzz 3 spacings above the floor (above the first band): one beside
+    a leg, outside the top, the other under the top. With no top to the holding band (``support`` infinite,
+    ``low`` 4) the patch beside goes, the one under the top and the whole table stay; with the first band's
+    holding band (2 to 6 spacings) neither goes."""
+    from splatreplace_ns.masks.clustering import cut_off_the_floor
+
+    rng = np.random.default_rng(3)
+    spacing = 0.02
+    table = _table_at(rng, 0.0)
+    beside = _box(rng, [0.5 + 5 * spacing, 0.0, 3 * spacing], [0.5 + 9 * spacing, 0.1, 3.5 * spacing], 80)
+    under = _box(rng, [-0.2, 0.1, 3 * spacing], [0.2, 0.4, 3.5 * spacing], 80)
+    means = np.concatenate([table, beside, under])
+    ids = np.ones(len(means), dtype=np.int64)
+    floor = np.array([0.0, 0.0, 1.0, 0.0])
+    n = len(table)
+    low = cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=4.0, reach=2.0, support=np.inf)
+    assert (low[:n] == 1).all() and (low[n : n + 80] == 0).all() and (low[n + 80 :] == 1).all()
+    first = cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=2.0, reach=2.0, support=3.0)
+    assert (first == 1).all()
