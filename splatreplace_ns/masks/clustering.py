@@ -367,9 +367,14 @@ def two_sidedness(points: np.ndarray, plane: np.ndarray, threshold: float) -> fl
     return min(above, 1.0 - above)
 
 
+def dbscan_labels(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
+    """[P] open3d DBSCAN label of each of [P, 3] points (-1: noise; ``min_points`` 1: single linkage)."""
+    return np.asarray(_cloud(points).cluster_dbscan(eps, min_points, print_progress=False), dtype=np.int64)
+
+
 def largest_component(points: np.ndarray, eps: float) -> np.ndarray:
     """Indices of the largest DBSCAN component of [P, 3] points (linked within ``eps``)."""
-    labels = np.asarray(_cloud(points).cluster_dbscan(eps, 3, print_progress=False), dtype=np.int64)
+    labels = dbscan_labels(points, eps, 3)
     if not (labels >= 0).any():
         return np.zeros(0, dtype=np.int64)
     return np.flatnonzero(labels == np.bincount(labels[labels >= 0]).argmax())
@@ -475,8 +480,7 @@ def cluster_points(points: np.ndarray, spacing: float, cfg: ClusteringConfig) ->
     """DBSCAN of [P, 3] points; returns [P] labels (>= 0 cluster, -1 noise)."""
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
-    labels = _cloud(points).cluster_dbscan(cfg.cluster_eps * spacing, cfg.cluster_min_points, print_progress=False)
-    return np.asarray(labels, dtype=np.int64)
+    return dbscan_labels(points, cfg.cluster_eps * spacing, cfg.cluster_min_points)
 
 
 def reclaim(points: np.ndarray, labels: np.ndarray, on_plane: np.ndarray, spacing: float, cfg: ClusteringConfig) -> np.ndarray:
@@ -1353,7 +1357,7 @@ def keep_the_largest_piece(ids: np.ndarray, means: np.ndarray, radius: float, mi
         members = np.flatnonzero(ids == k)
         if len(members) < 2:
             continue
-        labels = np.asarray(_cloud(means[members]).cluster_dbscan(radius, 1, print_progress=False), dtype=np.int64)
+        labels = dbscan_labels(means[members], radius, 1)
         sizes = np.bincount(labels[labels >= 0])
         out[members[(labels < 0) | (sizes[np.maximum(labels, 0)] < min_fraction * sizes.max())]] = 0
     return out
