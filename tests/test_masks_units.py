@@ -1102,7 +1102,8 @@ def test_a_copys_run_of_heights_ends_where_the_scene_runs_on_beyond_its_footprin
     beam = np.c_[rng.uniform(-30, 30, 12000), rng.uniform(-4, 4, 12000), rng.uniform(20, 24, 12000)]
     floor = np.c_[rng.uniform(-30, 30, 20000), rng.uniform(-30, 30, 20000), rng.uniform(-0.5, 0.5, 20000)]
     top = np.c_[rng.uniform(-12, 12, 3000), rng.uniform(-12, 12, 3000), rng.uniform(9, 10, 3000)]
-    points = np.concatenate([post, capital, beam, floor, top])
+    floater = np.array([[0.0, 0.0, 1e12]])  # far above: must not size anything
+    points = np.concatenate([post, capital, beam, floor, floater, top])
     distance, height = np.linalg.norm(points[:, :2], axis=1), points[:, 2]
     others = np.arange(len(points)) < len(points) - len(top)  # the table top is another copy's
     run = dict(radius=4.0, slice_height=0.5, gap=2.0, ring=5.0, overflow=0.5)

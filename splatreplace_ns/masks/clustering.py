@@ -1155,14 +1155,12 @@ def heights_within_footprint(
     level = np.floor(height[counted] / slice_height).astype(np.int64)
     inside = distance[counted] <= radius
     first = int(np.floor(start / slice_height))
-    if not len(level):
-        return start, start
-    offset = int(level.min())
-    within = np.bincount(level[inside] - offset, minlength=int(level.max()) - offset + 1)
-    beyond = np.bincount(level[~inside] - offset, minlength=len(within))
+    # counts per occupied slice only: a floater far above must not size an array
+    within = dict(zip(*[a.tolist() for a in np.unique(level[inside], return_counts=True)]))
+    beyond = dict(zip(*[a.tolist() for a in np.unique(level[~inside], return_counts=True)]))
 
     def belongs(b: int) -> bool:
-        return 0 <= b - offset < len(within) and within[b - offset] > 0 and beyond[b - offset] <= overflow * within[b - offset]
+        return within.get(b, 0) > 0 and beyond.get(b, 0) <= overflow * within[b]
 
     if not belongs(first):
         return start, start
@@ -1214,18 +1212,19 @@ def claim_within_footprint(
     if not len(usable):
         return ids
     reach = radius[usable] + cfg.footprint_margin
-    distance = np.linalg.norm(across[:, None, :] - axes[usable][None, :, :], axis=2)  # [N, K']
-    holders = distance <= reach[None, :]
+    loose = np.flatnonzero(undecided)
+    holders = np.linalg.norm(across[loose, None, :] - axes[usable][None, :, :], axis=2) <= reach[None, :]  # [U, K']
+    alone = holders.sum(axis=1) == 1
     out = ids.copy()
     runs = np.zeros((len(usable), 2))
     for j, k in enumerate(usable):
         # what another copy holds is not what runs on beyond this one (the table top a chair is tucked under)
         counted = solid & (labels == click_clusters[k]) & ((ids == 0) | (ids == k + 1))
         start = float(np.median(height[(ids == k + 1) & solid]))
-        runs[j] = heights_within_footprint(distance[:, j], height, counted, float(reach[j]), start,
-                                           cfg.footprint_slice, cfg.footprint_gap, cfg.footprint_ring,
+        runs[j] = heights_within_footprint(np.linalg.norm(across - axes[k], axis=1), height, counted, float(reach[j]),
+                                           start, cfg.footprint_slice, cfg.footprint_gap, cfg.footprint_ring,
                                            cfg.footprint_overflow)
-        candidates = np.flatnonzero(undecided & holders[:, j] & (holders.sum(axis=1) == 1))
+        candidates = loose[holders[:, j] & alone]
         out[candidates[(height[candidates] >= runs[j, 0]) & (height[candidates] < runs[j, 1])]] = k + 1
     if cfg.footprint_cut_above:
         classes = np.array([clicks[k].cls for k in usable])
