@@ -1356,9 +1356,9 @@ def keep_the_largest_piece(ids: np.ndarray, means: np.ndarray, radius: float, mi
         members = np.flatnonzero(ids == k)
         if len(members) < 2:
             continue
-        labels = dbscan_labels(means[members], radius, 1)
-        sizes = np.bincount(labels[labels >= 0])
-        out[members[(labels < 0) | (sizes[np.maximum(labels, 0)] < min_fraction * sizes.max())]] = 0
+        labels = dbscan_labels(means[members], radius, 1)  # single linkage: every point in some piece
+        sizes = np.bincount(labels)
+        out[members[sizes[labels] < min_fraction * sizes.max()]] = 0
     return out
 
 
