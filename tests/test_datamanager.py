@@ -84,6 +84,21 @@ def test_cpu_datamanager_loads_masks_depth_and_instances(tmp_path):
     assert "transform_matrix" not in instances[1]
 
 
+def test_a_masks_base_trains_on_every_frame_whatever_the_split(tmp_path):
+    """``train_on_every_frame`` (the base model ``splatreplace masks`` trains) ignores the split lists: all six
+    frames train, in file order, masks and all; without it the dataset's split holds."""
+    meta = write_dataset(tmp_path)
+    config = SplatReplaceDataManagerConfig(cache_images="cpu")
+    config.data = tmp_path
+    config.dataparser.load_3D_points = False
+    config.dataparser.train_on_every_frame = True
+    dm = config.setup(device="cpu", test_mode="val")
+    names = [Path(p).name for p in dm.train_dataparser_outputs.image_filenames]
+    assert names == [Path(f["file_path"]).name for f in meta["frames"]]
+    assert len(dm.train_dataparser_outputs.metadata["instance_mask_filenames"]) == 6
+    assert len(setup_dm(tmp_path).train_dataset) == 4
+
+
 @pytest.mark.parametrize("depth_zero", [None, "unknown", "far"])
 def test_depth_zero_is_unknown_unless_the_dataset_says_far(tmp_path, depth_zero):
     """A frame's depth 0 stays 0 (a hole: unsupervised) unless transforms.json says ``"depth_zero": "far"``,

@@ -1262,3 +1262,18 @@ def test_what_lies_low_beside_an_object_and_not_under_it_goes_to_the_background(
     assert (low[:n] == 1).all() and (low[n : n + 80] == 0).all() and (low[n + 80 :] == 1).all()
     first = cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=2.0, reach=2.0, support=3.0)
     assert (first == 1).all()
+
+
+def test_masks_base_trains_on_every_frame_unless_the_capture_lists_a_split(tmp_path):
+    from splatreplace_ns.masks.base import trains_on_every_frame
+
+    frames = [{"file_path": f"images/{i:04d}.png"} for i in range(4)]
+    own = tmp_path / "own.json"
+    own.write_text(json.dumps({"frames": frames}))
+    listed = tmp_path / "listed.json"
+    listed.write_text(json.dumps({"frames": frames, "train_filenames": ["images/0000.png"], "test_filenames": []}))
+    assert trains_on_every_frame(own, "auto") and not trains_on_every_frame(listed, "auto")
+    assert trains_on_every_frame(listed, "every") and not trains_on_every_frame(own, "split")
+    with pytest.raises(ValueError, match="auto, every or split"):
+        trains_on_every_frame(own, "all")
+

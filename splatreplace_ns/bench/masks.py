@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from splatreplace_ns.eval.segmentation import ground_truth_masks_by_name, score_views_from_clicks, segmentation_scores
+from splatreplace_ns.masks.base import BaseFrames
 from splatreplace_ns.masks.capture import strip_ground_truth
 from splatreplace_ns.masks.clustering import ClusteringConfig
 from splatreplace_ns.bench.output import write_result_json
@@ -51,6 +52,9 @@ class BenchMasksConfig:
     """Test views."""
     base_iterations: int = 2000
     """Base 3DGS* iterations of the masks run."""
+    base_frames: BaseFrames = "auto"
+    """Frames the masks run's base stage trains on (``splatreplace masks --base-frames``): the scenes list their
+    split, so ``auto`` trains on the training views; ``every`` on the test views too."""
     load_config: Optional[Path] = None
     """Reuse this base run (config.yml of an earlier masks run on the same capture) instead of training."""
     backends: Tuple[str, ...] = ("geometric",)
@@ -293,6 +297,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         strip_ground_truth(scene, capture)
         command = MasksCommand(
             capture, backend=backend, load_config=base_config, base_iterations=cfg.base_iterations,
+            base_frames=cfg.base_frames,
             output_dir=cfg.out_dir / f"masks_{scene.name}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
             border=BorderConfig(method=cfg.border), clustering=cfg.clustering, skip_bad_clicks=cfg.skip_bad_clicks,
         )
@@ -345,6 +350,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         "base": {"config": str(base_config), "time_s": base_s, "reused": cfg.load_config is not None},
         "parameters": {
             "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+            "base_frames": cfg.base_frames,
             "border": cfg.border, "boundary_tolerance": cfg.boundary_tolerance,
             "clustering": dataclasses.asdict(cfg.clustering),
             "downstream_base_iterations": cfg.downstream_base_iterations,

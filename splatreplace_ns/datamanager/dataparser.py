@@ -12,10 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Type
+from unittest.mock import patch
 
 import numpy as np
 import torch
 
+from nerfstudio.data.dataparsers import nerfstudio_dataparser
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
@@ -46,6 +48,16 @@ def normalise_object_pose(
     return scaled @ np.asarray(object_to_world, dtype=np.float64)
 
 
+SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
+
+
+def without_split_lists(path: Path) -> Dict:
+    """``transforms.json`` as nerfstudio reads it, less its split lists (nerfstudio's parser obeys them before
+    its ``eval_mode``)."""
+    meta = load_from_json(Path(path))
+    return {key: value for key, value in meta.items() if key not in SPLIT_LISTS}
+
+
 @dataclass
 class SplatReplaceDataParserConfig(NerfstudioDataParserConfig):
     """nerfstudio's parser plus instance masks, instances and ground-truth poses."""
@@ -53,6 +65,11 @@ class SplatReplaceDataParserConfig(NerfstudioDataParserConfig):
     _target: Type = field(default_factory=lambda: SplatReplaceDataParser)
     load_3D_points: bool = True
     """Initialise from the dataset's point cloud (``ply_file_path``) when there is one."""
+    train_on_every_frame: bool = False
+    """Train on every frame of ``transforms.json``, ignoring its ``train_filenames`` / ``val_filenames`` /
+    ``test_filenames`` and ``eval_mode`` (evaluation then sees the same frames). For a model that only serves
+    to make every frame's masks (``splatreplace masks``): a frame held out for evaluation would get masks from
+    a model that never saw it."""
 
 
 @dataclass
@@ -75,7 +92,12 @@ class SplatReplaceDataParser(Nerfstudio):
         meta = load_from_json(transforms_path)
         if "depth_unit_scale_factor" in meta:
             self.config.depth_unit_scale_factor = float(meta["depth_unit_scale_factor"])
-        outputs = super()._generate_dataparser_outputs(split)
+        if self.config.train_on_every_frame:
+            self.config.eval_mode = "all"
+            with patch.object(nerfstudio_dataparser, "load_from_json", without_split_lists):
+                outputs = super()._generate_dataparser_outputs(split)
+        else:
+            outputs = super()._generate_dataparser_outputs(split)
         data_dir = transforms_path.parent
 
         outputs.metadata["instance_mask_filenames"] = self._instance_mask_filenames(

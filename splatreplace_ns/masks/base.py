@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, List, Optional, Tuple
+from typing import Any, List, Literal, Optional, Tuple
 
 import numpy as np
 import torch
@@ -148,12 +148,33 @@ class BaseModel:
         return self.pipeline.datamanager.image_downscale if self.pipeline is not None else 1
 
 
-def train_base(data: Path, output_dir: Path, iterations: int, experiment_name: Optional[str] = None) -> BaseModel:
-    """Trains the base 3DGS* stage only (no masks or clicks needed) with nerfstudio's Trainer."""
+BaseFrames = Literal["auto", "every", "split"]
+
+
+def trains_on_every_frame(transforms_path: Path, choice: BaseFrames) -> bool:
+    """Whether the base model for masks trains on every frame: ``every`` yes, ``split`` no (the frames nerfstudio
+    trains on: the file's ``train_filenames``, or nine in ten), ``auto`` unless ``transforms.json`` lists its own
+    split. Every frame gets masks, and a frame held out for evaluation gets them from a model that never saw it;
+    nerfstudio's one-in-ten hold-out is a default for evaluating views, which masks do not need, while a split the
+    capture lists is its owner's."""
+    if choice not in ("auto", "every", "split"):
+        raise ValueError(f"base frames {choice!r}: expected auto, every or split")
+    if choice != "auto":
+        return choice == "every"
+    meta = json.loads(Path(transforms_path).read_text())
+    return not any(key in meta for key in ("train_filenames", "val_filenames", "test_filenames"))
+
+
+def train_base(
+    data: Path, output_dir: Path, iterations: int, experiment_name: Optional[str] = None, every_frame: bool = False
+) -> BaseModel:
+    """Trains the base 3DGS* stage only (no masks or clicks needed) with nerfstudio's Trainer; with ``every_frame``,
+    on every frame whatever the split (:func:`trains_on_every_frame`)."""
     from splatreplace_ns.method.train import make_trainer_config, run_training
 
     config = make_trainer_config(
-        data, output_dir, iterations, 0, experiment_name=experiment_name or f"{Path(data).name}-masks-base", progress=True
+        data, output_dir, iterations, 0, experiment_name=experiment_name or f"{Path(data).name}-masks-base", progress=True,
+        train_on_every_frame=every_frame,
     )
     trainer = run_training(config)
     outputs = trainer.pipeline.datamanager.train_dataparser_outputs

@@ -24,7 +24,9 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
-from splatreplace_ns.masks.base import BaseModel, FrameCameras, frame_cameras, load_base, train_base
+from splatreplace_ns.masks.base import (
+    BaseFrames, BaseModel, FrameCameras, frame_cameras, load_base, train_base, trains_on_every_frame,
+)
 from splatreplace_ns.masks.clustering import Clustering, ClusteringConfig, cluster_gaussians, clusters_of_clicks, instance_ids
 from splatreplace_ns.masks.colmap_input import colmap_to_transforms
 from splatreplace_ns.masks.lifting import (
@@ -81,6 +83,10 @@ class MasksCommand:
     """Reuse a trained run (its config.yml) instead of training the base stage."""
     base_iterations: int = 3000
     """Base 3DGS* iterations when training here."""
+    base_frames: BaseFrames = "auto"
+    """Frames the base stage trains on when training here: every frame (``every``), the frames nerfstudio trains
+    on (``split``: the file's ``train_filenames``, or nine in ten), or ``auto``: every frame unless transforms.json
+    lists its own split. Every frame gets masks; a held-out one gets them from a model that never saw it."""
     output_dir: Path = Path("outputs")
     """Where the base run is saved (reuse it later with --load-config)."""
     clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
@@ -98,8 +104,8 @@ class MasksCommand:
     instance keeps the id of its click's position (click k → id k + 1), so a skipped click leaves a gap. Two
     clicks on one instance still stop the command."""
     sparse_fraction: float = 0.25
-    """Warn about an instance holding fewer Gaussians than this fraction of the median of its class (classes of
-    three or more instances): the base model barely holds it and its masks will be poor. 0: never."""
+    """An instance holding fewer Gaussians than this fraction of its class's median (classes of three or more
+    instances) gets a warning: the base model barely holds it and its masks will be poor. 0: never."""
 
     def main(self) -> Dict:
         report = make_masks(self)
@@ -420,7 +426,11 @@ def make_masks(cfg: MasksCommand) -> Dict:
             raise ClickError(f"click {click.index} ({click.file_path}): not a frame of {transforms}")
 
     start = time.perf_counter()
-    base: BaseModel = load_base(cfg.load_config, transforms) if cfg.load_config else train_base(data, cfg.output_dir, cfg.base_iterations)
+    if cfg.load_config:
+        base: BaseModel = load_base(cfg.load_config, transforms)
+    else:
+        base = train_base(data, cfg.output_dir, cfg.base_iterations,
+                          every_frame=trains_on_every_frame(transforms, cfg.base_frames))
     base_s = time.perf_counter() - start
     model = base.model
     model.eval()

@@ -21,12 +21,14 @@ def make_trainer_config(
     steps_per_save: Optional[int] = None,
     progress: bool = False,
     resume_from: Optional[Tuple[Path, int]] = None,
+    train_on_every_frame: bool = False,
 ) -> TrainerConfig:
     """splat-replace's TrainerConfig set up for an unattended run (no viewer, no evaluation mid-run).
 
     ``resume_from=(checkpoint_dir, step)`` continues a run from its checkpoint at ``step`` up to the same
     total as a fresh run: nerfstudio's Trainer runs ``max_num_iterations`` steps *after* the loaded one,
-    so only the steps that are left are asked for.
+    so only the steps that are left are asked for. ``train_on_every_frame`` ignores the dataset's train/test
+    split (a base model for masks only).
     """
     config = splat_replace_trainer_config(base_iterations, contrastive_iterations, finetune_iterations)
     max_num_iterations = config.pipeline.total_iterations
@@ -36,6 +38,7 @@ def make_trainer_config(
             raise ValueError(f"resume step {config.load_step} is not inside a run of {max_num_iterations} steps")
         config.max_num_iterations = max_num_iterations - (config.load_step + 1)
     config.pipeline.datamanager.data = Path(data)
+    config.pipeline.datamanager.dataparser.train_on_every_frame = train_on_every_frame
     config.output_dir = Path(output_dir)
     config.experiment_name = experiment_name or Path(data).name
     config.timestamp = "run"
