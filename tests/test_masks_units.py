@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
@@ -1277,3 +1278,64 @@ def test_masks_base_trains_on_every_frame_unless_the_capture_lists_a_split(tmp_p
     with pytest.raises(ValueError, match="auto, every or split"):
         trains_on_every_frame(own, "all")
 
+
+def colonnade_flush_with_its_beam(seed: int = 0):
+    """Five round columns (radius 0.07) whose fronts are flush with the front face (y = 0) of the beam they
+    carry, every side seen; returns the points and how many belong to the beam."""
+    rng = np.random.default_rng(seed)
+    beam = []
+    for axis, value, n in ((1, 0.0, 6000), (1, 0.3, 6000), (2, 1.0, 4000), (2, 1.3, 4000)):
+        p = rng.uniform([-2.6, 0.0, 1.0], [2.6, 0.3, 1.3], (n, 3))
+        p[:, axis] = value
+        beam.append(p)
+    beam = np.concatenate(beam)
+    columns = []
+    for x in (-2.0, -1.0, 0.0, 1.0, 2.0):
+        a, z = rng.uniform(0, 2 * np.pi, 1500), rng.uniform(0.0, 1.0, 1500)
+        columns.append(np.c_[x + 0.07 * np.cos(a), 0.07 + 0.07 * np.sin(a), z])
+    return np.concatenate([beam] + columns), len(beam)
+
+
+def test_a_wall_keeps_its_wide_parts_and_gives_back_the_columns_flush_with_it():
+    """The beam's front face is a wall to remove; the strips where the columns touch its plane are linked to
+    its sheet but a few spacings wide: the opening leaves them to the columns, and the face itself stays."""
+    from splatreplace_ns.masks.clustering import neighbourhood_spacing, remove_planes, wide_parts
+
+    means, n_beam = colonnade_flush_with_its_beam()
+    spacing = neighbourhood_spacing(means, 8)
+    front = np.flatnonzero(np.abs(means[:n_beam, 1]) < 1e-9)
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(wall_min_width=0))
+    assert any(abs(p[1]) > 0.99 for p in planes) and on_plane[n_beam:].mean() > 0.15
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(wall_min_width=8))
+    assert any(abs(p[1]) > 0.99 for p in planes)
+    assert on_plane[n_beam:].mean() < 0.06 and on_plane[front].mean() > 0.9
+    # the opening alone: a 40 × 10 sheet keeps its inside, loses a strip 2 cells wide hanging from it
+    grid = np.stack(np.meshgrid(np.arange(40.0), np.arange(10.0, 20.0)), -1).reshape(-1, 2)
+    strip = np.stack(np.meshgrid(np.arange(19.0, 21.0), np.arange(0.0, 10.0)), -1).reshape(-1, 2)
+    sheet = np.concatenate([grid, strip])
+    points = np.c_[sheet[:, 0], np.zeros(len(sheet)), sheet[:, 1]]
+    keep = wide_parts(points, np.array([0.0, 1.0, 0.0, 0.0]), 1.0, 4.0)
+    assert keep[: len(grid)].mean() > 0.95 and keep[len(grid):].mean() < 0.2
+
+
+def test_a_click_on_a_silhouette_lands_on_the_object_in_front():
+    """At a silhouette the rendered depth mixes a post with the wall far behind it: the lifted point lies in
+    the empty space between. The click votes for and seeds from the post, the first surface on its ray."""
+    from splatreplace_ns.masks.clustering import click_voters, on_the_surface
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    post = np.c_[rng.uniform(-0.05, 0.05, 400), rng.uniform(-0.05, 0.05, 400), rng.uniform(1.95, 2.05, 400)]
+    wall = np.c_[rng.uniform(-1, 1, 4000), rng.uniform(-1, 1, 4000), np.full(4000, 6.0)]
+    means = np.concatenate([post, wall])
+    solid = np.arange(len(means))
+    # lifted between the post (depth 2) and the wall (6), within 25 % of neither
+    click = LiftedClick(0, 0, (0.0, 0.0), "post", torch.tensor([0.0, 0.0, 3.0]), "click 0", camera_centre=torch.zeros(3))
+    cfg = ClusteringConfig()
+    near, point = click_voters(click, means, solid, cKDTree(means), 0.02, cfg)
+    assert len(near) and (near < len(post)).all() and abs(point[2] - 2.0) < 0.06
+    assert abs(float(on_the_surface([click], means, np.ones(len(means)), 0.02, cfg)[0].point[2]) - 2.0) < 0.06
+    # a lifted point next to the wall keeps its own depth
+    near, point = click_voters(dataclasses.replace(click, point=torch.tensor([0.3, 0.3, 6.0])), means, solid,
+                               cKDTree(means), 0.02, cfg)
+    assert (near >= len(post)).all() and point[2] == 6.0
