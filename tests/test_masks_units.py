@@ -1339,3 +1339,36 @@ def test_a_click_on_a_silhouette_lands_on_the_object_in_front():
     near, point = click_voters(dataclasses.replace(click, point=torch.tensor([0.3, 0.3, 6.0])), means, solid,
                                cKDTree(means), 0.02, cfg)
     assert (near >= len(post)).all() and point[2] == 6.0
+
+
+def test_plane_gaussians_of_the_class_colour_next_to_a_copy_come_back_when_the_plane_colour_leaves_them_out():
+    """A terracotta abacus flush with a cream beam face: its front went with the face's plane. Counted in the
+    plane's colours, the abacus's own Gaussians make terracotta look like the plane's; counted only away from
+    the instances, the plane is cream and the abacus front comes back, the face beside it does not."""
+    from splatreplace_ns.masks.clustering import colour_histogram, reclaim_by_colour
+
+    rng = np.random.default_rng(0)
+    # a square shaft's surface under its capital (terracotta top 0.9–1.0), the capital's front (y = 0) in the
+    # face's plane, the cream face above and beside it
+    side = rng.integers(0, 4, 8000)
+    u, z = rng.uniform(-0.1, 0.1, 8000), rng.uniform(0.0, 1.0, 8000)
+    shaft = np.stack([np.where(side < 2, u, np.where(side == 2, -0.1, 0.1)),
+                      np.where(side == 0, 0.0, np.where(side == 1, 0.2, 0.1 + u)), z], axis=1)
+    shaft = shaft[(shaft[:, 1] > 0.0) | (shaft[:, 2] < 0.9)]  # its capital's front is in the plane below
+    face = np.c_[rng.uniform(-3, 3, 8000), np.zeros(8000), rng.uniform(1.0, 1.3, 8000)]
+    abacus = np.c_[rng.uniform(-0.1, 0.1, 400), np.zeros(400), rng.uniform(0.9, 1.0, 400)]
+    n = len(shaft)
+    means = np.concatenate([shaft, face, abacus])
+    marble, cream, terracotta = [0.9, 0.9, 0.88], [0.75, 0.68, 0.58], [0.81, 0.53, 0.41]
+    colours = np.concatenate([np.where(shaft[:, 2:] >= 0.9, terracotta, marble), np.tile(cream, (8000, 1)),
+                              np.tile(terracotta, (400, 1))])
+    colours = np.clip(colours + rng.normal(0, 0.01, colours.shape), 0, 1)
+    ids = np.r_[np.ones(n, dtype=np.int64), np.zeros(8400, dtype=np.int64)]
+    on_plane = np.arange(n, len(means))
+    histograms = {"pillar": colour_histogram(colours[:n], 8)}
+    spacing = 0.01
+    kept = reclaim_by_colour(ids, means, colours, on_plane, histograms, ["pillar"], spacing,
+                             ClusteringConfig(colour_reclaim_away=0.0))
+    assert (kept[n + 8000:] == 1).mean() < 0.05
+    out = reclaim_by_colour(ids, means, colours, on_plane, histograms, ["pillar"], spacing, ClusteringConfig())
+    assert (out[n + 8000:] == 1).mean() > 0.9 and (out[n : n + 8000] == 0).all()
