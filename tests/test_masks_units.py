@@ -51,8 +51,12 @@ def test_lift_click_rejects_empty_and_outside_pixels():
     alpha[10:20, 10:20] = 1.0
     ok = lift_click(0, 0, (12.0, 15.0), "crate", "click 0", depth, alpha, viewmat, K)
     assert float(ok.point[2]) == pytest.approx(2.0)
-    with pytest.raises(ClickError, match="click 1: nothing opaque"):
+    with pytest.raises(ClickError, match="click 1: nothing opaque") as far:
         lift_click(1, 0, (40.0, 40.0), "crate", "click 1", depth, alpha, viewmat, K)
+    assert "nearest" not in str(far.value)
+    # two pixels beside the crate's edge: the message points at the crate's nearest pixel
+    with pytest.raises(ClickError, match=r"alpha 0.00 < 0.5.*nearest that is lies at \[19, 15\]"):
+        lift_click(1, 0, (21.0, 15.0), "crate", "click 1", depth, alpha, viewmat, K)
     with pytest.raises(ClickError, match="click 2: pixel .* outside the 64x48 image"):
         lift_click(2, 0, (64.0, 3.0), "crate", "click 2", depth, alpha, viewmat, K)
 

@@ -134,6 +134,21 @@ def visible_by_depth(
     return inside & in_front
 
 
+def nearest_opaque_pixel(alpha: torch.Tensor, row: int, col: int, min_alpha: float, radius: int = 3) -> Optional[Tuple[int, int]]:
+    """(row, col) of the pixel nearest (row, col), within ``radius`` pixels, whose [H, W] ``alpha`` reaches
+    ``min_alpha``; None when there is none (a click on the sky, not beside an object)."""
+    H, W = alpha.shape
+    r0, r1, c0, c1 = max(0, row - radius), min(H, row + radius + 1), max(0, col - radius), min(W, col + radius + 1)
+    rows, cols = torch.nonzero(alpha[r0:r1, c0:c1] >= min_alpha, as_tuple=True)
+    if len(rows) == 0:
+        return None
+    d2 = (rows + r0 - row) ** 2 + (cols + c0 - col) ** 2
+    k = int(torch.argmin(d2))
+    if float(d2[k]) > radius**2:
+        return None
+    return int(rows[k]) + r0, int(cols[k]) + c0
+
+
 def lift_click(
     index: int, frame: int, xy: Tuple[float, float], cls: str, source: str,
     depth: torch.Tensor, alpha: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, min_alpha: float = 0.5,
@@ -153,7 +168,12 @@ def lift_click(
         raise ClickError(f"{source}: pixel {xy} is outside the {W}x{H} image")
     row, col = pixel
     if float(alpha[row, col, 0]) < min_alpha or not bool(torch.isfinite(depth[row, col, 0])):
-        raise ClickError(f"{source}: nothing opaque is rendered at this pixel (empty space or sky); click on an object")
+        near = nearest_opaque_pixel(alpha[..., 0], row, col, min_alpha)
+        hint = "" if near is None else f"; the nearest that is lies at [{near[1]}, {near[0]}] (pixel x, y)"
+        raise ClickError(
+            f"{source}: nothing opaque is rendered at this pixel (alpha {float(alpha[row, col, 0]):.2f} < "
+            f"{min_alpha:g}: empty space, sky, or an object's edge{hint}); click on an object"
+        )
     point = lift_pixel(u, v, float(depth[row, col, 0]), viewmat.double(), K.double()).float()
     centre = -viewmat[:3, :3].double().T @ viewmat[:3, 3].double()
     return LiftedClick(index, frame, (float(u), float(v)), cls, point, source, centre.float())
