@@ -1376,3 +1376,25 @@ def test_plane_gaussians_of_the_class_colour_next_to_a_copy_come_back_when_the_p
     assert (kept[n + 8000:] == 1).mean() < 0.05
     out = reclaim_by_colour(ids, means, colours, on_plane, histograms, ["pillar"], spacing, ClusteringConfig())
     assert (out[n + 8000:] == 1).mean() > 0.9 and (out[n : n + 8000] == 0).all()
+
+
+def test_a_board_whose_gaussians_lie_in_a_thick_layer_is_still_a_support():
+    """A board seen from every side holds opaque Gaussians in a layer under its top, about as many as the pieces
+    on it just above: a level plane, it is removed whatever lies under it (the one-side test, which refuses a
+    plane through a row of columns, is for walls)."""
+    from splatreplace_ns.masks.clustering import neighbourhood_spacing, remove_planes, two_sidedness
+
+    rng = np.random.default_rng(0)
+    top = np.c_[rng.uniform(-1, 1, (12000, 2)), rng.normal(0, 0.002, 12000)]
+    layer = np.c_[rng.uniform(-0.6, 0.6, (5000, 2)), -rng.uniform(0.02, 0.12, 5000)]
+    pieces = []
+    for x, y in rng.uniform(-0.5, 0.5, (12, 2)):
+        a, z = rng.uniform(0, 2 * np.pi, 500), rng.uniform(0.01, 0.3, 500)
+        pieces.append(np.c_[x + 0.04 * np.cos(a), y + 0.04 * np.sin(a), z])
+    means = np.concatenate([top, layer] + pieces)
+    spacing = neighbourhood_spacing(means, 8)
+    threshold = ClusteringConfig().plane_distance * spacing
+    assert two_sidedness(means, np.array([0.0, 0.0, 1.0, 0.0]), threshold) > 0.35  # refused as a wall would be
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig())
+    assert any(abs(p[2]) > 0.99 for p in planes) and on_plane[:12000].mean() > 0.8
+    assert on_plane[17000:].mean() < 0.05  # not the pieces
