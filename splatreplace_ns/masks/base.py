@@ -16,7 +16,7 @@ import torch
 
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from splatreplace_ns.datamanager.dataparser import DatasetFormatError
+from splatreplace_ns.datamanager.dataparser import SPLIT_LISTS, DatasetFormatError
 from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, undistorted_to_captured_pixel
 from splatreplace_ns.segment.clicks import resized_pixel
 
@@ -162,7 +162,7 @@ def trains_on_every_frame(transforms_path: Path, choice: BaseFrames) -> bool:
     if choice != "auto":
         return choice == "every"
     meta = json.loads(Path(transforms_path).read_text())
-    return not any(key in meta for key in ("train_filenames", "val_filenames", "test_filenames"))
+    return not any(key in meta for key in SPLIT_LISTS)
 
 
 def train_base(
