@@ -698,8 +698,9 @@ def click_voters(
 
     Returns:
         [<= click_neighbours] indices into ``means`` (empty: nothing there), [3] the click's point: the lifted one,
-        or where its ray meets the first surface (:func:`gaussians_near_ray`) when no solid Gaussian lies within
-        ``click_radius`` spacings of the lifted one.
+        or, when no solid Gaussian lies within ``click_radius`` spacings of it, the median depth on its ray of
+        those the ray passes within that distance of (:func:`gaussians_near_ray`: near the lifted depth, or else
+        the first surface the ray meets).
     """
     point = click.point.double().numpy()
     k = min(cfg.click_neighbours, len(solid))
