@@ -62,6 +62,24 @@ def test_masks_for_every_frame_match_the_ground_truth(base_run):
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious
 
 
+def test_a_capture_without_a_split_trains_the_masks_base_on_every_frame(base_run, tmp_path):
+    """The tiny scene lists its split (12 training views of 16); without the lists, as ns-process-data writes a
+    capture, the base stage of ``splatreplace masks`` trains on all 16 frames, not nerfstudio's nine in ten."""
+    from splatreplace_ns.masks.base import load_base
+
+    scene, capture, _ = base_run
+    data = tmp_path / "capture"
+    shutil.copytree(capture, data, ignore=shutil.ignore_patterns("masks", "transforms.json"))
+    meta = json.loads((capture / "transforms.json.before-masks").read_text())
+    for key in ("train_filenames", "val_filenames", "test_filenames"):
+        meta.pop(key, None)
+    (data / "transforms.json").write_text(json.dumps(meta))
+    report = make_masks(MasksCommand(data, base_iterations=300, output_dir=tmp_path / "runs"))
+    assert report["frames"] == len(meta["frames"]) == 16
+    base = load_base(Path(report["config"]))
+    assert len(base.pipeline.datamanager.train_dataset) == 16
+
+
 def test_the_masks_ceiling_renders_each_gaussian_with_its_ground_truth_label(base_run):
     """The benchmark's ceiling: Gaussians labelled by the ground-truth masks and rendered as the geometric
     backend renders its instances, scored on the same frames. Our masks do not beat it, and the written masks
