@@ -520,7 +520,7 @@ def remove_planes(
         if len(sheet) < cfg.min_plane_fraction * len(points):
             set_aside[inliers] = True
             continue
-        wall = abs(unit[2]) < np.cos(np.radians(30.0))  # more than 30° from level; nerfstudio's up is +z
+        wall = not is_level(unit)
         if cfg.wall_min_width > 0 and wall:
             sheet = sheet[wide_parts(points[sheet], plane, max(spacing, own), cfg.wall_min_width)]
         set_aside[inliers] = True  # what follows either removes the sheet or leaves it aside
@@ -1434,8 +1434,21 @@ def floor_basis(up: np.ndarray) -> np.ndarray:
     return np.stack([across, np.cross(up, across)], axis=1)
 
 
-def floor_plane(planes: Sequence[np.ndarray], prior: Sequence[float] = (0.0, 0.0, 1.0),
-                max_tilt_deg: float = 30.0, points: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+UP = (0.0, 0.0, 1.0)
+"""nerfstudio's up in its normalised frame."""
+LEVEL_TILT_DEG = 30.0
+"""A plane whose normal lies within this many degrees of up is level (a floor, a board); others are walls."""
+
+
+def is_level(normal: np.ndarray, prior: Sequence[float] = UP, max_tilt_deg: float = LEVEL_TILT_DEG) -> bool:
+    """Whether a plane with the [3] ``normal`` (any length, either sign) is within ``max_tilt_deg`` of level."""
+    prior = np.asarray(prior, dtype=np.float64)
+    cos = abs(float(np.asarray(normal, dtype=np.float64) @ prior)) / max(np.linalg.norm(normal) * np.linalg.norm(prior), 1e-12)
+    return cos >= np.cos(np.radians(max_tilt_deg))
+
+
+def floor_plane(planes: Sequence[np.ndarray], prior: Sequence[float] = UP,
+                max_tilt_deg: float = LEVEL_TILT_DEG, points: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
     """[4] the floor among the removed planes, as (n, d) with a unit normal n pointing along ``prior``
     (nerfstudio's up, +z), so that ``x · n + d`` is the height above it; None when no plane is within
     ``max_tilt_deg`` of ``prior`` (a capture whose only planes are walls).
@@ -1449,7 +1462,7 @@ def floor_plane(planes: Sequence[np.ndarray], prior: Sequence[float] = (0.0, 0.0
         plane = np.asarray(plane, dtype=np.float64)
         norm = max(np.linalg.norm(plane[:3]), 1e-12)
         cos = float(plane[:3] @ prior) / norm
-        if abs(cos) < np.cos(np.radians(max_tilt_deg)):
+        if not is_level(plane[:3], prior, max_tilt_deg):
             continue
         plane = plane * np.sign(cos) / norm
         key = -abs(cos) if points is None else float(np.mean(points @ plane[:3] + plane[3] < 0))
