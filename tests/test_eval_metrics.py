@@ -346,6 +346,15 @@ def test_eval_report_of_a_segmented_model(segmented_run, tmp_path):
         values = [row[key] for row in expected if row[key] is not None]
         assert report[key] == pytest.approx(float(np.mean(values)), abs=1e-4), key
     assert report["masked_views"] == sum(row["psnr_masked"] is not None for row in expected) > 0
+    # every view on its own, in the eval dataset's order, named by its image
+    names = [p.name for p in pipeline.datamanager.eval_dataset.image_filenames]
+    assert [row["image"] for row in report["per_view"]] == names and len(names) == len(expected)
+    for row, truth in zip(report["per_view"], expected):
+        assert row["psnr"] == pytest.approx(truth["psnr"], abs=1e-4)
+        if truth["psnr_masked"] is None:
+            assert row["psnr_masked"] is None
+        else:
+            assert row["psnr_masked"] == pytest.approx(truth["psnr_masked"], abs=1e-4)
     # the masked region is a subset of the image: its figure is not the full-image one
     assert report["psnr_masked"] != pytest.approx(report["psnr"], abs=1e-3)
     # per instance: the error pooled over its pixels in every view (numpy, independently)

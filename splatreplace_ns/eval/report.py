@@ -72,6 +72,20 @@ class EvalViewRecorder:
         """PSNR of the pooled error over each ground-truth label's pixels in all views (0 = background)."""
         return {label: mse_to_psnr(sse / count) for label, (sse, count) in sorted(self.squared_error.items()) if count}
 
+    def per_view(self, names: Optional[List[str]] = None) -> List[Dict[str, Any]]:
+        """Each eval view's image metrics in the order nerfstudio evaluated them (the eval dataset's order),
+        with its image's file name when ``names`` has one per view; a view without a metric leaves it None."""
+        keys = ("psnr", "ssim") + MASKED_KEYS + ("lpips",)
+        named = names is not None and len(names) == len(self.views)
+        rows = []
+        for index, view in enumerate(self.views):
+            row: Dict[str, Any] = {"view": index}
+            if named:
+                row["image"] = names[index]
+            row.update({key: view.get(key) for key in keys if key in view or key in MASKED_KEYS})
+            rows.append(row)
+        return rows
+
     def masked_averages(self, get_std: bool = False) -> Dict[str, float]:
         """Mean (and, with ``get_std``, std like nerfstudio's) of each masked metric over the views that have it,
         plus ``masked_views``: how many views had a non-empty mask."""
@@ -279,6 +293,11 @@ def evaluation_report(pipeline, recorder: EvalViewRecorder) -> Dict:
         has_masks = getattr(pipeline.datamanager.eval_dataset, "instance_mask_filenames", None) is not None
         reason = "no eval view contains a ground-truth instance" if has_masks else "the eval views have no ground-truth instance masks"
         unavailable.update({key: reason for key in MASKED_KEYS})
+
+    # which test views gained and which did not: the averages hide it (views the capture covered change
+    # little, the ones it did not are where the shared templates help)
+    names = [Path(str(f)).name for f in getattr(pipeline.datamanager.eval_dataset, "image_filenames", [])]
+    report["per_view"] = recorder.per_view(names)
 
     from_clicks = masks_from_clicks(pipeline.datamanager.eval_dataset)
     if getattr(pipeline.datamanager.eval_dataset, "instance_mask_filenames", None) is not None:

@@ -1,0 +1,32 @@
+"""``bench template`` splits the test views by how well the baseline renders them."""
+
+import pytest
+
+from splatreplace_ns.bench.template import gain_by_baseline_quality
+
+
+def rows(values):
+    return [{"view": i, "psnr_masked": v} for i, v in enumerate(values)]
+
+
+def test_worst_half_is_ranked_by_the_baseline_and_averaged_apart():
+    baseline = rows([25.0, 15.0, 26.0, 17.0, 16.0])
+    ours = rows([24.0, 19.0, 26.5, 20.0, 18.0])
+    split = gain_by_baseline_quality(baseline, ours)
+    worst, rest = split["worst_half"], split["rest"]
+    assert worst["views"] == [1, 4, 3] and rest["views"] == [0, 2]  # five views: the worse three
+    assert worst["baseline"] == pytest.approx(16.0) and worst["ours"] == pytest.approx(19.0)
+    assert worst["gain"] == pytest.approx(3.0)
+    assert rest["gain"] == pytest.approx((24.0 + 26.5) / 2 - 25.5)
+    # the two halves together give the overall average gain
+    overall = sum(o["psnr_masked"] - b["psnr_masked"] for b, o in zip(baseline, ours)) / 5
+    assert (3 * worst["gain"] + 2 * rest["gain"]) / 5 == pytest.approx(overall)
+
+
+def test_views_without_the_metric_are_left_out_and_too_few_give_none():
+    baseline = rows([20.0, None, 22.0])
+    ours = rows([21.0, 30.0, None])
+    assert gain_by_baseline_quality(baseline, ours) is None  # only view 0 has both
+    split = gain_by_baseline_quality(rows([20.0, None, 22.0]), rows([21.0, 25.0, 22.5]))
+    assert split["worst_half"]["views"] == [0] and split["rest"]["views"] == [2]
+    assert gain_by_baseline_quality([], []) is None
