@@ -33,6 +33,14 @@ def test_baseline_beside_ours_reports_what_its_checkpoint_gives(tmp_path):
     again = scored(pair["baseline_pipeline"])
     for k in ("psnr", "psnr_masked", "ssim", "ssim_masked"):
         assert abs(again[k] - baseline[k]) < 1e-3, (k, again[k], baseline[k])
+    # each test view on its own, in the eval dataset's order
+    assert [row["view"] for row in baseline["per_view"]] == list(range(len(pair["baseline_pipeline"].datamanager.eval_dataset)))
+    model = pair["ours_trainer"].pipeline.model
+    if model.has_templates:  # ours' own scene before replacement, the size the instanced file is compared with
+        from splatreplace_ns.template.export import ply_bytes
+
+        assert pair["sizes"]["base_scene_gaussians"] == model.base_gaussians > 0
+        assert pair["sizes"]["base_scene_ply_bytes"] == ply_bytes(model.base_gaussians, model.features_rest.shape[1] + 1)
     steps = sorted((tmp_path / "runs" / "baseline").glob("*/run/nerfstudio_models/step-*.ckpt"))
     assert steps and steps[-1].name == f"step-{150 + 200 + 60 - 1:09d}.ckpt"
 

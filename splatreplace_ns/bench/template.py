@@ -206,6 +206,9 @@ def train_ours_and_baseline(
         composed = len(model.composed_scene().means)
         sizes.update(ours_ply_bytes=ply_bytes(composed, sh_coeffs), ours_gaussians_rendered=composed,
                      ours_gaussians_stored=model.num_points)
+        if model.base_gaussians:  # ours' own scene before the templates replaced its copies (what export compares)
+            sizes.update(base_scene_gaussians=int(model.base_gaussians),
+                         base_scene_ply_bytes=ply_bytes(int(model.base_gaussians), sh_coeffs))
     registration = {int(k): {"success": v["success"], "message": v["message"]} for k, v in model.registration.items()}
 
     if worker is not None:
@@ -331,4 +334,6 @@ def print_table(result: Dict) -> None:
             f"sizes: baseline PLY {sizes['baseline_ply_bytes'] / 1e6:.2f} MB ({sizes['baseline_gaussians']} Gaussians), "
             f"ours PLY {sizes['ours_ply_bytes'] / 1e6:.2f} MB, instanced {sizes['instanced_bytes'] / 1e6:.2f} MB "
             f"({sizes['ours_gaussians_stored']} stored Gaussians)"
+            + (f"; ours before replacement {sizes['base_scene_ply_bytes'] / 1e6:.2f} MB as PLY "
+               f"({sizes['base_scene_gaussians']} Gaussians)" if "base_scene_ply_bytes" in sizes else "")
         )
