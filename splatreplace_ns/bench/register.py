@@ -10,6 +10,7 @@ alone. Every instance is then registered onto its class template with
 * ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, multi-start,
   ICP restricted to turns about the floor's normal);
 * ``no_upright``: full rigid ICP (the paper's) instead;
+* ``no_same_floor``: the copy's height from ICP rather than from the floor it shares with the template;
 * ``no_virtual_views``: the training cameras instead of the virtual sphere;
 * ``no_icp``: without the ICP refinement;
 * ``matcher:NAME``: each matcher of ``splatreplace_ns.register.matching.MATCHERS`` as the robust matcher
@@ -50,7 +51,7 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "no_upright", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp"
+    "ours", "no_upright", "no_same_floor", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp"
 )
 
 
@@ -71,7 +72,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, no_upright, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, no_upright, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """Settings of "ours"; each row changes only what it ablates. Its onnx_model (``--onnx-model`` under
@@ -424,6 +425,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append(("ours", replace(base, method="ours")))
         elif row == "no_upright":  # full rigid ICP (the paper's) instead of turns about the floor's normal
             out.append((row, replace(base, method="ours", upright=False)))
+        elif row == "no_same_floor":  # the height of the copy from ICP, not from the floor both stand on
+            out.append((row, replace(base, method="ours", same_floor_tolerance=0.0)))
         elif row == "no_shape_first":  # the colour score chooses among every acceptable candidate
             out.append((row, replace(base, method="ours", colour_fitness_ratio=0.0)))
         elif row == "no_level_colour":  # the overall colour score alone picks between near-symmetric turns
@@ -451,7 +454,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, no_upright, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, no_upright, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp"
             )
     return out

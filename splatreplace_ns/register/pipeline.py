@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
-from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
+from splatreplace_ns.register.icp import fpfh_ransac, onto_the_same_floor, refine_icp, refine_icp_upright
 from splatreplace_ns.register.errors import geodesic_deg
 from splatreplace_ns.register.level_colour import gaussian_normals, level_colour_difference, prefer_level_colour
 from splatreplace_ns.register.lifting import backproject
@@ -109,6 +109,11 @@ class RegistrationConfig:
             selection is unchanged. False: full rigid ICP only, as in the paper (bench register, row
             ``no_upright``).
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished.
+        same_floor_tolerance: after the upright refinement, a pose that lifts the source by at most this
+            fraction of the template's radius along the floor's normal is taken to stand on the template's
+            floor: the lift is set to zero (:func:`~splatreplace_ns.register.icp.onto_the_same_floor`). The height then comes from the floor
+            both copies stand on, not from their reconstructed centres. A larger lift (a copy on a shelf or a
+            step) is kept. 0: off (bench register, row ``no_same_floor``).
         max_free_space_violation: when the caller gives the training views' depth (``observed``), every
             candidate places the template at the instance and measures how much of it lies in front of what
             the cameras saw (:func:`~splatreplace_ns.register.free_space.free_space_violation`: mean fraction
@@ -175,6 +180,7 @@ class RegistrationConfig:
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     upright: bool = True
     upright_max_tilt_deg: float = 5.0
+    same_floor_tolerance: float = 0.1
     max_free_space_violation: float = 0.4
     free_space_slack: float = 0.05
     free_space_margin_rel: float = 0.15
@@ -478,7 +484,7 @@ def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: flo
     polished, _ = refine_icp_upright(src, tgt, T, up, max_distance=cfg.icp_max_distance_rel * radius)
     if not np.isfinite(polished).all():
         return T, False
-    return polished, True
+    return onto_the_same_floor(polished, up, radius, cfg.same_floor_tolerance)[0], True
 
 
 _SH_C0 = 0.28209479177387814
