@@ -111,9 +111,9 @@ class RegistrationConfig:
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished.
         same_floor_tolerance: after the upright refinement, a pose that lifts the source by at most this
             fraction of the template's radius along the floor's normal is taken to stand on the template's
-            floor: the lift is set to zero (:func:`~splatreplace_ns.register.icp.onto_the_same_floor`). The height then comes from the floor
-            both copies stand on, not from their reconstructed centres. A larger lift (a copy on a shelf or a
-            step) is kept. 0: off (bench register, row ``no_same_floor``).
+            floor: the lift is set to zero (:func:`~splatreplace_ns.register.icp.onto_the_same_floor`). The
+            height then comes from the floor both copies stand on, not from their reconstructed centres. A
+            larger lift (a copy on a shelf or a step) is kept. 0: off (bench register, row ``no_same_floor``).
         max_free_space_violation: when the caller gives the training views' depth (``observed``), every
             candidate places the template at the instance and measures how much of it lies in front of what
             the cameras saw (:func:`~splatreplace_ns.register.free_space.free_space_violation`: mean fraction
