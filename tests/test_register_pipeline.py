@@ -113,7 +113,8 @@ def test_register_instances_recovers_ground_truth(tiny):
         assert rot_err < 1.0, res.message
         assert t_err < 0.01, res.message
         # copies on one floor: the default refines the chosen pose as a turn about up, so no tilt is left
-        assert "(upright)" in res.message and np.allclose(res.transform[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9)
+        assert "(upright, on the template's floor)" in res.message, res.message  # and at the template's height
+        assert np.allclose(res.transform[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9) and abs(res.transform[2, 3]) < 1e-12
     print(f"register_instances: {elapsed:.1f} s")
 
 
@@ -122,21 +123,21 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
 
     g = tiny["gaussians"]
     free = register_instance(g[1], g[2], RegistrationConfig(**FAST, upright=False))
-    assert free.success and "(upright)" not in free.message
+    assert free.success and "(upright" not in free.message
     src, tpl = g[1].centres(), g[2].centres()
     radius = float(np.linalg.norm(tpl - tpl.mean(0), axis=1).max())
     cfg = RegistrationConfig(**FAST)
     polished, done = _upright_polish(src, tpl, free.transform, radius, cfg)
-    assert done and np.allclose(polished[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9)
+    assert done == " (upright, on the template's floor)" and np.allclose(polished[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9)
     rot_err, t_err = pose_errors(polished, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])
     assert rot_err < 1.0 and t_err < 0.01
     # a pose tilted beyond upright_max_tilt_deg (not a copy on the same floor) is left alone, as is any pose
     # when upright is off
     tilted = free.transform.copy()
     tilted[:3, :3] = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float) @ tilted[:3, :3]  # 90° about x
-    assert _upright_polish(src, tpl, tilted, radius, cfg) == (tilted, False)
+    assert _upright_polish(src, tpl, tilted, radius, cfg) == (tilted, "")
     off = replace(cfg, upright=False)
-    assert _upright_polish(src, tpl, free.transform, radius, off) == (free.transform, False)
+    assert _upright_polish(src, tpl, free.transform, radius, off) == (free.transform, "")
 
 
 def test_single_instance_class_is_identity(tiny):

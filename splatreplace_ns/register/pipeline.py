@@ -473,18 +473,20 @@ def _violation(tpl: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationC
 def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig):
     """The chosen pose refined once more as a turn about ``cfg.up_axis`` plus a translation (finest ICP
     distance), when ``cfg.upright`` and its tilt is at most ``cfg.upright_max_tilt_deg`` (a pose tilted
-    further is not a copy on the same floor; it is left alone). → T, polished?"""
+    further is not a copy on the same floor; it is left alone), its lift set to zero when it stands on the
+    template's floor. → T, how it was polished for the log ("" when it was not)."""
     if not (cfg.upright and cfg.icp):
-        return T, False
+        return T, ""
     up = np.asarray(cfg.up_axis, dtype=np.float64)
     up = up / np.linalg.norm(up)
     tilt = float(np.degrees(np.arccos(np.clip((T[:3, :3] @ up) @ up, -1.0, 1.0))))
     if tilt > cfg.upright_max_tilt_deg:
-        return T, False
+        return T, ""
     polished, _ = refine_icp_upright(src, tgt, T, up, max_distance=cfg.icp_max_distance_rel * radius)
     if not np.isfinite(polished).all():
-        return T, False
-    return onto_the_same_floor(polished, up, radius, cfg.same_floor_tolerance)[0], True
+        return T, ""
+    grounded, same_floor = onto_the_same_floor(polished, up, radius, cfg.same_floor_tolerance)
+    return grounded, " (upright, on the template's floor)" if same_floor else " (upright)"
 
 
 _SH_C0 = 0.28209479177387814
@@ -736,7 +738,7 @@ def register_instance(
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
         msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
-    msg += (", ICP" if cfg.icp else "") + (" (upright)" if polished else "") + f", fitness {fit:.3f}"
+    msg += (", ICP" if cfg.icp else "") + polished + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
     if level_note:
