@@ -728,9 +728,9 @@ def register_instance(
                 chosen, [refined[k] for k in pool], source, template, src_keep, tpl_keep, src_c, tpl_c, src_rgb,
                 tpl_rgb, radius, cfg)
         _, score, n_inl, i, j, coarse, T, fit = chosen
-    T, polished = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
     violation = _violation(tpl_c, T, radius, cfg, observed)
-    if polished:
+    if polish_note:
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
     ok = ok and (violation is None or violation <= cfg.max_free_space_violation)
@@ -738,7 +738,7 @@ def register_instance(
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
         msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
-    msg += (", ICP" if cfg.icp else "") + polished + f", fitness {fit:.3f}"
+    msg += (", ICP" if cfg.icp else "") + polish_note + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
     if level_note:
