@@ -8,6 +8,7 @@ import math
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -163,6 +164,11 @@ def test_masked_averages_skip_views_without_instances():
     assert out["psnr_masked_std"] == pytest.approx(np.std([30.0, 34.0], ddof=1))
     assert out["masked_views"] == 2
     assert EvalViewRecorder(model=None).masked_averages() == {}
+    recorder.views = recorder.views[:1]  # one view: a mean and no spread, and no warning from torch
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        one = recorder.masked_averages(get_std=True)
+    assert one["psnr_masked"] == 30.0 and math.isnan(one["psnr_masked_std"])
 
 
 def test_json_safe_replaces_non_finite_and_tensors():

@@ -94,10 +94,9 @@ class EvalViewRecorder:
             values = [v[key] for v in self.views if v.get(key) is not None]
             if not values:
                 continue
-            std, mean = torch.std_mean(torch.tensor(values, dtype=torch.float64))
-            out[key] = float(mean)
-            if get_std:
-                out[f"{key}_std"] = float(std)
+            out[key] = float(np.mean(values))
+            if get_std:  # one view has no spread: NaN (null in the JSON), without torch's warning
+                out[f"{key}_std"] = float(np.std(values, ddof=1)) if len(values) > 1 else float("nan")
         if out:
             out["masked_views"] = sum(1 for v in self.views if v.get(MASKED_KEYS[0]) is not None)
         return out
