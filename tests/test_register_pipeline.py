@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from splatreplace_ns.register import rotation_error_deg, translation_error_rel
 from splatreplace_ns.register.pipeline import (
@@ -131,11 +132,22 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
     assert done == " (upright, on the template's floor)" and np.allclose(polished[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9)
     rot_err, t_err = pose_errors(polished, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])
     assert rot_err < 1.0 and t_err < 0.01
-    # a pose tilted beyond upright_max_tilt_deg (not a copy on the same floor) is left alone, as is any pose
-    # when upright is off
+    # a pose ICP left tilted by several degrees (as on sparse copies) is made upright again
+    centre = free.transform[:3, :3] @ src.mean(0) + free.transform[:3, 3]
+    lean = np.eye(4)
+    lean[:3, :3] = Rotation.from_euler("x", 8.0, degrees=True).as_matrix()
+    lean[:3, 3] = centre - lean[:3, :3] @ centre
+    leaning = lean @ free.transform
+    assert pose_errors(leaning, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])[0] > 7.0
+    straightened, done = _upright_polish(src, tpl, leaning, radius, cfg)
+    assert done.startswith(" (upright")
+    assert pose_errors(straightened, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])[0] < 1.0
+    # a pose tilted beyond upright_max_tilt_deg (a copy lying on its side) is left alone and the log says so,
+    # as is any pose when upright is off
     tilted = free.transform.copy()
     tilted[:3, :3] = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float) @ tilted[:3, :3]  # 90° about x
-    assert _upright_polish(src, tpl, tilted, radius, cfg) == (tilted, "")
+    kept, note = _upright_polish(src, tpl, tilted, radius, cfg)
+    assert kept is tilted and note.startswith(" (tilted 9") and "left as ICP placed it" in note
     off = replace(cfg, upright=False)
     assert _upright_polish(src, tpl, free.transform, radius, off) == (free.transform, "")
 

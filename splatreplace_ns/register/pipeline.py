@@ -108,7 +108,10 @@ class RegistrationConfig:
             degree: where no floor is found near the instances it is skipped (and the log says so). Candidate
             selection is unchanged. False: full rigid ICP only, as in the paper (bench register, row
             ``no_upright``).
-        upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished.
+        upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished (a copy
+            that really leans or lies on its side). Free ICP on a sparse copy tilts it by several degrees:
+            with 5° a chess pawn tilted 5.2° (5.1° off, 4.1 % of its diagonal; upright 0.4°, 1.0 %) and an
+            office chair tilted past it kept 9.9° of error.
         same_floor_tolerance: after the upright refinement, a pose that lifts the source by at most this
             fraction of the template's radius along the floor's normal is taken to stand on the template's
             floor: the lift is set to zero (:func:`~splatreplace_ns.register.icp.onto_the_same_floor`). The
@@ -179,7 +182,7 @@ class RegistrationConfig:
     multistart_turns: int = 12
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     upright: bool = True
-    upright_max_tilt_deg: float = 5.0
+    upright_max_tilt_deg: float = 15.0
     same_floor_tolerance: float = 0.1
     max_free_space_violation: float = 0.4
     free_space_slack: float = 0.05
@@ -474,14 +477,14 @@ def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: flo
     """The chosen pose refined once more as a turn about ``cfg.up_axis`` plus a translation (finest ICP
     distance), when ``cfg.upright`` and its tilt is at most ``cfg.upright_max_tilt_deg`` (a pose tilted
     further is not a copy on the same floor; it is left alone), its lift set to zero when it stands on the
-    template's floor. → T, how it was polished for the log ("" when it was not)."""
+    template's floor. → T, how it was polished for the log ("" when upright is off)."""
     if not (cfg.upright and cfg.icp):
         return T, ""
     up = np.asarray(cfg.up_axis, dtype=np.float64)
     up = up / np.linalg.norm(up)
     tilt = float(np.degrees(np.arccos(np.clip((T[:3, :3] @ up) @ up, -1.0, 1.0))))
     if tilt > cfg.upright_max_tilt_deg:
-        return T, ""
+        return T, f" (tilted {tilt:.1f}° from the floor's normal, over upright_max_tilt_deg: left as ICP placed it)"
     polished, _ = refine_icp_upright(src, tgt, T, up, max_distance=cfg.icp_max_distance_rel * radius)
     if not np.isfinite(polished).all():
         return T, ""
