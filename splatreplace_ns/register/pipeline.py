@@ -110,7 +110,7 @@ class RegistrationConfig:
             ``no_upright``).
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished (a copy
             that really leans or lies on its side). Free ICP on a sparse copy tilts it by several degrees:
-            with 5° a chess pawn tilted 5.2° (5.1° off, 4.1 % of its diagonal; upright 0.4°, 1.0 %) and an
+            with 5° a chess pawn tilted 5.2° (5.1° off, 4.1 % of its diagonal; upright 0.3°, 1.0 %) and an
             office chair tilted past it kept 9.9° of error.
         same_floor_tolerance: after the upright refinement, a pose that lifts the source by at most this
             fraction of the template's radius along the floor's normal is taken to stand on the template's
@@ -731,9 +731,10 @@ def register_instance(
                 chosen, [refined[k] for k in pool], source, template, src_keep, tpl_keep, src_c, tpl_c, src_rgb,
                 tpl_rgb, radius, cfg)
         _, score, n_inl, i, j, coarse, T, fit = chosen
+    chosen_T = T
     T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
     violation = _violation(tpl_c, T, radius, cfg, observed)
-    if polish_note:
+    if T is not chosen_T:  # polished: its fitness changed
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
     ok = ok and (violation is None or violation <= cfg.max_free_space_violation)
