@@ -224,6 +224,41 @@ def test_bench_json_interface(tiny_bench):
     assert data["time_s"]["total"] > 0 and data["machine"]["versions"]["torch"]
 
 
+def test_truth_start_row_pairwise_matrices_and_nearest_turns(tiny_bench, tmp_path):
+    """icp_from_truth starts at the ground truth (without ICP its errors are zero); --pairwise registers every
+    ordered pair of the three crates, and its entry for (source, the row's template) is the ours row's own
+    result; the nearest copy's turn is the smallest turn to another copy of the class."""
+    from splatreplace_ns.bench.register import run_register_bench
+    from splatreplace_ns.register.errors import geodesic_deg
+
+    cfg, scene = tiny_bench
+    cfg = replace(cfg, rows=("ours", "icp_from_truth"), pairwise=True, json=tmp_path / "diag.json")
+    result = run_register_bench(cfg, scene)
+    ours, truth = result["rows"]
+    assert truth["method"] == "icp_from_truth" and "same_as" not in truth
+    assert truth["failures"] == 0 and truth["n_sources"] == 2
+    assert all("from the ground-truth pose" in e["message"] for e in truth["per_instance"])
+    assert all(math.isfinite(truth[k]) for k in ("rot_err_deg_max", "trans_err_rel_mean"))
+    pw = result["pairwise"]["crate"]
+    assert pw["ids"] == [1, 2, 3] and len(pw["rot_err_deg"]) == 3
+    for a in range(3):
+        assert pw["rot_err_deg"][a][a] is None and pw["trans_err_rel"][a][a] is None
+    for e in ours["per_instance"]:
+        a, b = pw["ids"].index(e["id"]), pw["ids"].index(e["template"])
+        if e["success"]:
+            assert pw["rot_err_deg"][a][b] == pytest.approx(e["rot_err_deg"], abs=0.05)
+            assert pw["trans_err_rel"][a][b] == pytest.approx(e["trans_err_rel"], abs=1e-3)
+    R = {i: rigid_part(g.pose)[0][:3, :3] for i, g in scene.ground_truth.items()}
+    for i, info in result["instances"].items():
+        expected = min(geodesic_deg(R[int(i)], R[j]) for j in R if j != int(i))
+        assert info["nearest_copy_turn_deg"] == pytest.approx(expected)
+    assert json.loads(json.dumps(result["pairwise"]))["crate"]["ids"] == [1, 2, 3]  # None stays null
+    # the start itself is the ground truth: with the refinement off, nothing is left to err
+    exact = run_register_bench(replace(cfg, rows=("icp_from_truth",), pairwise=False,
+                                       registration=replace(cfg.registration, icp=False)), scene)["rows"][0]
+    assert exact["rot_err_deg_max"] < 1e-4 and exact["trans_err_rel_mean"] < 1e-6, exact
+
+
 def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
     """--seg-run on a copy of the trained run whose stored segmentation is the ground truth under other ids:
     every segment must be matched to its ground-truth instance, and registering the renamed instances must

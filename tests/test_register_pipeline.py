@@ -152,6 +152,30 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
     assert _upright_polish(src, tpl, free.transform, radius, off) == (free.transform, "")
 
 
+def test_refine_from_a_perturbed_true_pose_comes_back(tiny):
+    """refine_from (what the pipeline does to its chosen candidate) brings a pose 4° and a few centimetres off
+    the truth back within the registration targets on the oracle crates, upright and on the template's floor."""
+    from splatreplace_ns.register.pipeline import refine_from
+
+    g, poses = tiny["gaussians"], tiny["poses"]
+    true = poses[2] @ np.linalg.inv(poses[1])  # template ≈ true · source
+    src_centre = g[1].centres().mean(0)
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_euler("z", 4.0, degrees=True).as_matrix()
+    centre = true[:3, :3] @ src_centre + true[:3, 3]
+    off[:3, 3] = centre - off[:3, :3] @ centre + np.array([0.03, -0.02, 0.0])
+    start = off @ true
+    errors = lambda T: pose_errors(T, poses[1], poses[2], tiny["symmetry"][1], tiny["classes"][1])
+    assert errors(start)[0] > 3.9 and errors(start)[1] > 0.005
+    T, fit, note = refine_from(g[1], g[2], start, RegistrationConfig(**FAST))
+    assert note == " (upright, on the template's floor)" and fit > 0.8
+    rot_err, t_err = errors(T)
+    assert rot_err < 0.5 and t_err < 0.01, (rot_err, t_err)
+    # without ICP the start is kept as it is
+    T0, _, note0 = refine_from(g[1], g[2], start, RegistrationConfig(**FAST, icp=False))
+    assert np.allclose(T0, start) and note0 == ""
+
+
 def test_single_instance_class_is_identity(tiny):
     results = register_instances({5: tiny["gaussians"][1]}, {5: "crate"}, RegistrationConfig(**FAST))
     assert list(results) == [5]

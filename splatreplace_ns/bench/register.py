@@ -16,7 +16,17 @@ alone. Every instance is then registered onto its class template with
 * ``matcher:NAME``: each matcher of ``splatreplace_ns.register.matching.MATCHERS`` as the robust matcher
   (fast ranking unchanged; "onnx" only with an ONNX model); a row whose settings equal an earlier row's
   (``matcher:xfeat`` = ``ours``) reuses that result and says so (``same_as``);
-* ``fpfh`` / ``fpfh_no_icp``: FPFH + RANSAC on the centres, with and without ICP.
+* ``fpfh`` / ``fpfh_no_icp``: FPFH + RANSAC on the centres, with and without ICP;
+* ``icp_from_truth``: no search; the refinement ``ours`` applies to its chosen candidate (ICP, upright polish
+  onto the template's floor), started from the ground-truth pose: what this reconstruction lets ICP on the
+  centres reach at best, and so a floor for the search rows.
+
+``--pairwise`` also registers every ordered pair of copies within each class of three or more (settings of
+``ours``, each copy its own template) and writes the error matrices (``pairwise``): whether a copy that lands
+wrong does so against every other copy (the reconstruction cannot tell) or only against its template. Each
+instance's ``nearest_copy_turn_deg`` (the smallest turn between its true orientation and another copy's of its
+class) says how much of what the capture saw of it it shares with the nearest copy when all are seen from one
+side.
 
 Errors are those of the source's pose implied by the estimate, ``T_est⁻¹ · P_template``, against its
 ground-truth pose ``P_source`` (both object→world in the model's normalised frame): rotation as the
@@ -51,8 +61,10 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "no_upright", "no_same_floor", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp"
+    "ours", "no_upright", "no_same_floor", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
+    "icp_from_truth",
 )
+TRUTH_START_ROWS = ("icp_from_truth",)  # rows that start from the ground truth instead of searching
 
 
 @dataclass
@@ -73,7 +85,10 @@ class BenchRegisterConfig:
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
     """Rows to run: ours, no_upright, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
-    fpfh, fpfh_no_icp."""
+    fpfh, fpfh_no_icp, icp_from_truth (ours' refinement started from the ground-truth pose)."""
+    pairwise: bool = False
+    """Also register every ordered pair of copies within each class of three or more instances (settings of
+    ours) and write the rotation and translation error matrices."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     """Settings of "ours"; each row changes only what it ablates. Its onnx_model (``--onnx-model`` under
     ``splatreplace bench register``) adds the "onnx" matcher row, which is skipped without it."""
@@ -443,6 +458,8 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="fpfh")))
         elif row == "fpfh_no_icp":
             out.append((row, replace(base, method="fpfh", icp=False)))
+        elif row in TRUTH_START_ROWS:
+            out.append((row, replace(base, method="ours")))
         elif row == "matchers":
             for m in available_matchers(onnx_model):
                 out.append((f"matcher:{m}", replace(base, method="ours", robust_matcher=m)))
@@ -455,7 +472,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
         else:
             raise ValueError(
                 f"unknown row {row!r}; choose from ours, no_upright, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
-                "fpfh_no_icp"
+                "fpfh_no_icp, icp_from_truth"
             )
     return out
 
@@ -512,13 +529,32 @@ def run_row(
         missing: {instance id: reason} for instances that have no Gaussians (counted as failures).
         observed: the training views' depth (``register.free_space.ObservedDepth``) for the free-space check.
     """
+    if name in TRUTH_START_ROWS:
+        t0 = time.perf_counter()
+        results = register_from_truth(instances, classes, gt_of, ground_truth, reg)
+        return score_row(name, reg, results, time.perf_counter() - t0, instances, classes, gt_of, ground_truth,
+                         missing)
     if reg.method != "fpfh":
         for m in (reg.fast_matcher, reg.robust_matcher):
             _matcher_used(m, reg)  # load weights before the clock starts
     t0 = time.perf_counter()
     results = register_instances(instances, classes, reg, cameras=cameras if reg.method == "no_virtual_views" else None,
                                  observed=observed)
-    wall = time.perf_counter() - t0
+    return score_row(name, reg, results, time.perf_counter() - t0, instances, classes, gt_of, ground_truth, missing)
+
+
+def score_row(
+    name: str,
+    reg: RegistrationConfig,
+    results: Dict[int, Any],
+    wall: float,
+    instances: Dict[int, InstanceGaussians],
+    classes: Dict[int, str],
+    gt_of: Dict[int, Optional[int]],
+    ground_truth: Dict[int, GroundTruthInstance],
+    missing: Dict[int, str],
+) -> Dict:
+    """One row of the table from the registration results of its setting (``wall``: their wall time, s)."""
     per_instance = []
     for iid, res in results.items():
         if res.template_id == iid:
@@ -567,6 +603,101 @@ def run_row(
     }
 
 
+def _true_relative(ground_truth: Dict[int, GroundTruthInstance], source: int, template: int) -> np.ndarray:
+    """(4, 4) rigid transform with template ≈ T · source implied by the two ground-truth poses."""
+    from splatreplace_ns.bench.oracle import ground_truth_transform
+
+    return ground_truth_transform(rigid_part(ground_truth[template].pose)[0], rigid_part(ground_truth[source].pose)[0])
+
+
+def register_from_truth(
+    instances: Dict[int, InstanceGaussians],
+    classes: Dict[int, str],
+    gt_of: Dict[int, Optional[int]],
+    ground_truth: Dict[int, GroundTruthInstance],
+    reg: RegistrationConfig,
+) -> Dict[int, Any]:
+    """The ``icp_from_truth`` row: every source refined as ``ours`` refines its chosen candidate
+    (:func:`splatreplace_ns.register.pipeline.refine_from`), started from its ground-truth pose; templates
+    chosen as ``register_instances`` chooses them. → {instance id: RegistrationResult}."""
+    from splatreplace_ns.register.pipeline import RegistrationResult, choose_templates, refine_from
+
+    by_class: Dict[str, List[int]] = {}
+    for iid in sorted(instances):
+        by_class.setdefault(classes[iid], []).append(iid)
+    templates = choose_templates(by_class, {i: instances[i].num_gaussians for i in instances})
+    out: Dict[int, Any] = {}
+    for iid in sorted(instances):
+        tid = templates[classes[iid]]
+        t0 = time.perf_counter()
+        if iid == tid:
+            out[iid] = RegistrationResult(iid, tid, np.eye(4), True, 0, 1.0, f"instance {iid}: template")
+        elif gt_of.get(iid) is None or gt_of.get(tid) is None:
+            out[iid] = RegistrationResult(iid, tid, np.eye(4), False, 0, 0.0,
+                                          f"instance {iid}: no ground-truth instance to start from")
+        else:
+            T, fit, note = refine_from(instances[iid], instances[tid], _true_relative(ground_truth, gt_of[iid], gt_of[tid]), reg)
+            out[iid] = RegistrationResult(iid, tid, T, True, 0, fit,
+                                          f"instance {iid}: from the ground-truth pose, ICP{note}, fitness {fit:.3f}",
+                                          time.perf_counter() - t0)
+    return out
+
+
+def nearest_copy_turns(ground_truth: Dict[int, GroundTruthInstance]) -> Dict[int, Optional[float]]:
+    """{instance id: the smallest rotation (degrees, symmetry ignored) between its true orientation and that of
+    another instance of its class; None for a class of one}."""
+    from splatreplace_ns.register.errors import geodesic_deg
+
+    out: Dict[int, Optional[float]] = {}
+    for iid, gt in ground_truth.items():
+        R = rigid_part(gt.pose)[0][:3, :3]
+        turns = [geodesic_deg(R, rigid_part(o.pose)[0][:3, :3]) for j, o in ground_truth.items()
+                 if j != iid and o.cls == gt.cls]
+        out[iid] = min(turns) if turns else None
+    return out
+
+
+def run_pairwise(
+    reg: RegistrationConfig,
+    instances: Dict[int, InstanceGaussians],
+    ground_truth: Dict[int, GroundTruthInstance],
+    observed=None,
+) -> Dict[str, Dict]:
+    """Every ordered pair (source i, template j) of copies within each class of three or more instances,
+    registered with ``reg`` (instances labelled from the ground truth, ids = ground-truth ids).
+
+    Returns:
+        {class: {"ids": [...], "rot_err_deg": [[i→j]], "trans_err_rel": [[i→j]] (None on the diagonal and
+        for a failed pair), "time_s"}}.
+    """
+    from rich.progress import track
+
+    from splatreplace_ns.register.pipeline import register_instance, render_instance_views
+
+    by_class: Dict[str, List[int]] = {}
+    for iid in sorted(instances):
+        if instances[iid].num_gaussians > 0:
+            by_class.setdefault(ground_truth[iid].cls, []).append(iid)
+    out: Dict[str, Dict] = {}
+    for cls, ids in by_class.items():
+        if len(ids) < 3:
+            continue
+        t0 = time.perf_counter()
+        views = {j: render_instance_views(instances[j], reg) for j in ids}
+        rot = [[None] * len(ids) for _ in ids]
+        trans = [[None] * len(ids) for _ in ids]
+        pairs = [(a, b) for a in range(len(ids)) for b in range(len(ids)) if a != b]
+        for a, b in track(pairs, description=f"pairwise registration of the {cls} copies", transient=True):
+            i, j = ids[a], ids[b]
+            res = register_instance(replace(instances[i], id=i), replace(instances[j], id=j), reg, views[j], None,
+                                    observed)
+            if res.success:
+                src, tpl = ground_truth[i], ground_truth[j]
+                rot[a][b], trans[a][b] = pose_errors(res.transform, src.pose, tpl.pose, src.symmetry, src.bbox_diag)
+        out[cls] = {"ids": ids, "rot_err_deg": rot, "trans_err_rel": trans, "time_s": time.perf_counter() - t0}
+    return out
+
+
 def run_rows(
     rows: List[Tuple[str, RegistrationConfig]],
     instances: Dict[int, InstanceGaussians],
@@ -589,7 +720,7 @@ def run_rows(
     done: List[Tuple[RegistrationConfig, Dict]] = []
     out = []
     for name, reg in rows:
-        same = next((r for c, r in done if c == reg), None)
+        same = None if name in TRUTH_START_ROWS else next((r for c, r in done if c == reg), None)
         if same is not None:
             row = {**same, "method": name, "same_as": same["method"]}
         else:
@@ -660,9 +791,11 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     ids = sorted(scene.ground_truth)
     instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline))
     classes = {i: scene.ground_truth[i].cls for i in ids}
+    turns = nearest_copy_turns(scene.ground_truth)
+    observed = observed_training_depth(pipeline)
     result_rows = run_rows(
         rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks",
-        observed_training_depth(pipeline),
+        observed,
     )
     result: Dict[str, Any] = {
         "benchmark": "register",
@@ -670,13 +803,19 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         "rows": result_rows,
         "instances": {
             str(i): {"class": classes[i], "symmetry": scene.ground_truth[i].symmetry,
-                     "gaussians": instances[i].num_gaussians} for i in ids
+                     "gaussians": instances[i].num_gaussians, "nearest_copy_turn_deg": turns[i]} for i in ids
         },
         "gaussians_total": int(pipeline.model.num_points),
         "gaussians_labelled": int((scene.gt_labels > 0).sum()),
         # the up axis the upright rows used (the floor's normal), None when no row is upright
         "floor_up_axis": next((list(reg.up_axis) for _, reg in rows if reg.upright), None),
     }
+    if cfg.pairwise:
+        ours = next((reg for name, reg in rows if name == "ours"), None)
+        if ours is None:  # the floor's up axis as the rows found it
+            [(_, ours)] = with_floor_up_axes([("ours", replace(cfg.registration, method="ours"))],
+                                             pipeline.model.means.detach(), scene.gt_labels)
+        result["pairwise"] = run_pairwise(ours, instances, scene.ground_truth, observed)
     if cfg.seg_run is not None:
         seg = run_segmentation_rows(cfg, row_configs(cfg, tuple(cfg.seg_rows or cfg.rows)))
         result["rows_segmentation"] = seg.pop("rows")
@@ -736,5 +875,15 @@ def print_table(result: Dict) -> None:
                 fmt(row["trans_err_rel_mean"], 100.0), f"{row['failures']}/{row['n_sources']}",
                 fmt(row["time_s_per_instance"], digits=1),
             )
+        console.print(table)
+    for cls, pw in result.get("pairwise", {}).items():
+        table = Table(title=f"'{result['preset']}', {cls}: rotation error (°) of each copy (row) registered onto "
+                            f"each other (column)")
+        table.add_column("source \\ template", no_wrap=True)
+        for j in pw["ids"]:
+            table.add_column(str(j))
+        for a, i in enumerate(pw["ids"]):
+            table.add_row(str(i), *("·" if a == b else ("fail" if v is None else f"{v:.1f}")
+                                    for b, v in enumerate(pw["rot_err_deg"][a])))
         console.print(table)
     console.print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["time_s"].items()))

@@ -492,6 +492,27 @@ def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: flo
     return grounded, " (upright, on the template's floor)" if same_floor else " (upright)"
 
 
+def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np.ndarray,
+                cfg: Optional[RegistrationConfig] = None) -> tuple[np.ndarray, float, str]:
+    """What :func:`register_instance` does to the candidate it chose, from a given pose: ICP on the solid
+    centres (coarse to fine), then the upright polish onto the template's floor.
+
+    Args:
+        source, template: the two instances; init: (4, 4) pose with template ≈ init · source; cfg: settings.
+    Returns:
+        (T (4, 4), fitness of T, the polish's note for the log).
+    """
+    cfg = cfg or RegistrationConfig()
+    _, radius = instance_sphere(template)
+    src_c = source.centres()[source.solid(cfg.min_opacity, cfg.min_solid_points)]
+    tpl_c = template.centres()[template.solid(cfg.min_opacity, cfg.min_solid_points)]
+    T, fit = _refine(src_c, tpl_c, np.asarray(init, dtype=np.float64), radius, cfg)
+    polished, note = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    if polished is not T:
+        fit = _fitness(src_c, tpl_c, polished, cfg.icp_max_distance_rel * radius)
+    return polished, fit, note
+
+
 _SH_C0 = 0.28209479177387814
 
 
