@@ -27,7 +27,7 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Literal, Optional, Sequence
 
 import numpy as np
 import torch
@@ -36,7 +36,7 @@ from splatreplace_ns.register.free_space import ObservedDepth, free_space_violat
 from splatreplace_ns.register.icp import fpfh_ransac, onto_the_same_floor, refine_icp, refine_icp_upright
 from splatreplace_ns.register.errors import geodesic_deg
 from splatreplace_ns.register.level_colour import gaussian_normals, level_colour_difference, prefer_level_colour
-from splatreplace_ns.register.lifting import backproject
+from splatreplace_ns.register.lifting import backproject, rendered_surface
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
 from splatreplace_ns.register.up_axis import floor_up_axis
@@ -112,6 +112,14 @@ class RegistrationConfig:
             that really leans or lies on its side). Free ICP on a sparse copy tilts it by several degrees:
             with 5° a chess pawn tilted 5.2° (5.1° off, 4.1 % of its diagonal; upright 0.3°, 1.0 %) and an
             office chair tilted past it kept 9.9° of error.
+        polish_on: the points the upright refinement aligns. "surface": each instance's rendered surface,
+            back-projected from its virtual views' depth where they are at least ``min_alpha`` opaque (at most
+            ``polish_surface_points``). A 3DGS fit places its Gaussians' centres off the true surface by
+            amounts that differ from copy to copy; the rendered surface averages them. Started from the true
+            pose on chess at 160×120 the refinement ends at 0.32° / 0.91 % of the diagonal on the surface
+            against 1.26° / 1.29 % on the centres. "centres": the solid Gaussians' centres (bench register,
+            row ``polish_on_centres``). Candidates are chosen on the centres either way.
+        polish_surface_points: cap on the surface points per instance (a fixed random subset).
         same_floor_tolerance: after the upright refinement, a pose that lifts the source by at most this
             fraction of the template's radius along the floor's normal is taken to stand on the template's
             floor: the lift is set to zero (:func:`~splatreplace_ns.register.icp.onto_the_same_floor`). The
@@ -183,6 +191,8 @@ class RegistrationConfig:
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     upright: bool = True
     upright_max_tilt_deg: float = 15.0
+    polish_on: Literal["surface", "centres"] = "surface"
+    polish_surface_points: int = 20000
     same_floor_tolerance: float = 0.1
     max_free_space_violation: float = 0.4
     free_space_slack: float = 0.05
@@ -197,6 +207,8 @@ class RegistrationConfig:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"RegistrationConfig.method must be one of {METHODS}, got {self.method!r}")
+        if self.polish_on not in ("surface", "centres"):
+            raise ValueError(f"RegistrationConfig.polish_on must be 'surface' or 'centres', got {self.polish_on!r}")
         if self.select not in ("inliers", "photometric"):
             raise ValueError(f"RegistrationConfig.select must be 'inliers' or 'photometric', got {self.select!r}")
         if self.top_k < 1 or self.n_azimuth < 1 or self.n_elevation < 1:
@@ -492,10 +504,21 @@ def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: flo
     return grounded, " (upright, on the template's floor)" if same_floor else " (upright)"
 
 
+def _polish_points(views: Optional[InstanceViews], centres: np.ndarray, cfg: RegistrationConfig) -> np.ndarray:
+    """The points the upright polish aligns (``cfg.polish_on``): the rendered surface of ``views``, or the
+    solid ``centres`` (also when the polish is off, when there are no views or they show nothing)."""
+    if cfg.polish_on != "surface" or views is None or not (cfg.upright and cfg.icp):
+        return centres
+    surface = rendered_surface(views.depths, views.alphas, views.Ks, views.viewmats, cfg.min_alpha,
+                               cfg.polish_surface_points, cfg.seed)
+    return surface if len(surface) >= 4 else centres
+
+
 def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np.ndarray,
                 cfg: Optional[RegistrationConfig] = None) -> tuple[np.ndarray, float, str]:
     """What :func:`register_instance` does to the candidate it chose, from a given pose: ICP on the solid
-    centres (coarse to fine), then the upright polish onto the template's floor.
+    centres (coarse to fine), then the upright polish onto the template's floor (on the rendered surfaces of
+    both from the virtual views, or on the centres; ``cfg.polish_on``).
 
     Args:
         source, template: the two instances; init: (4, 4) pose with template ≈ init · source; cfg: settings.
@@ -507,7 +530,11 @@ def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np
     src_c = source.centres()[source.solid(cfg.min_opacity, cfg.min_solid_points)]
     tpl_c = template.centres()[template.solid(cfg.min_opacity, cfg.min_solid_points)]
     T, fit = _refine(src_c, tpl_c, np.asarray(init, dtype=np.float64), radius, cfg)
-    polished, note = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    surface = cfg.polish_on == "surface" and cfg.upright and cfg.icp
+    src_views = render_instance_views(source, cfg) if surface else None
+    tpl_views = render_instance_views(template, cfg) if surface else None
+    polished, note = _upright_polish(_polish_points(src_views, src_c, cfg), _polish_points(tpl_views, tpl_c, cfg),
+                                     T, radius, cfg)
     if polished is not T:
         fit = _fitness(src_c, tpl_c, polished, cfg.icp_max_distance_rel * radius)
     return polished, fit, note
@@ -753,7 +780,8 @@ def register_instance(
                 tpl_rgb, radius, cfg)
         _, score, n_inl, i, j, coarse, T, fit = chosen
     chosen_T = T
-    T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    T, polish_note = _upright_polish(_polish_points(src_views, src_c, cfg), _polish_points(tpl_views, tpl_c, cfg),
+                                     T, radius, cfg)
     violation = _violation(tpl_c, T, radius, cfg, observed)
     if T is not chosen_T:  # polished: its fitness changed
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
