@@ -606,13 +606,6 @@ def score_row(
     }
 
 
-def _true_relative(ground_truth: Dict[int, GroundTruthInstance], source: int, template: int) -> np.ndarray:
-    """(4, 4) rigid transform with template ≈ T · source implied by the two ground-truth poses."""
-    from splatreplace_ns.bench.oracle import ground_truth_transform
-
-    return ground_truth_transform(rigid_part(ground_truth[template].pose)[0], rigid_part(ground_truth[source].pose)[0])
-
-
 def register_from_truth(
     instances: Dict[int, InstanceGaussians],
     classes: Dict[int, str],
@@ -620,29 +613,21 @@ def register_from_truth(
     ground_truth: Dict[int, GroundTruthInstance],
     reg: RegistrationConfig,
 ) -> Dict[int, Any]:
-    """The ``icp_from_truth`` row: every source refined as ``ours`` refines its chosen candidate
-    (:func:`splatreplace_ns.register.pipeline.refine_from`), started from its ground-truth pose; templates
-    chosen as ``register_instances`` chooses them. → {instance id: RegistrationResult}."""
-    from splatreplace_ns.register.pipeline import RegistrationResult, choose_templates, refine_from
+    """The ``icp_from_truth`` row: the ground-truth registration (:mod:`splatreplace_ns.bench.oracle`, templates
+    chosen as the stage chooses them), each source then refined as ``ours`` refines its chosen candidate
+    (:func:`splatreplace_ns.register.pipeline.refine_from`). → {instance id: RegistrationResult}."""
+    from splatreplace_ns.bench.oracle import ground_truth_registration
+    from splatreplace_ns.register.pipeline import refine_from
 
-    by_class: Dict[str, List[int]] = {}
-    for iid in sorted(instances):
-        by_class.setdefault(classes[iid], []).append(iid)
-    templates = choose_templates(by_class, {i: instances[i].num_gaussians for i in instances})
-    out: Dict[int, Any] = {}
-    for iid in sorted(instances):
-        tid = templates[classes[iid]]
+    poses = {iid: rigid_part(ground_truth[g].pose)[0] for iid, g in gt_of.items() if g is not None and iid in instances}
+    out = ground_truth_registration(instances, classes, poses)
+    for iid, res in out.items():
+        if res.template_id == iid or not res.success:
+            continue
         t0 = time.perf_counter()
-        if iid == tid:
-            out[iid] = RegistrationResult(iid, tid, np.eye(4), True, 0, 1.0, f"instance {iid}: template")
-        elif gt_of.get(iid) is None or gt_of.get(tid) is None:
-            out[iid] = RegistrationResult(iid, tid, np.eye(4), False, 0, 0.0,
-                                          f"instance {iid}: no ground-truth instance to start from")
-        else:
-            T, fit, note = refine_from(instances[iid], instances[tid], _true_relative(ground_truth, gt_of[iid], gt_of[tid]), reg)
-            out[iid] = RegistrationResult(iid, tid, T, True, 0, fit,
-                                          f"instance {iid}: from the ground-truth pose, ICP{note}, fitness {fit:.3f}",
-                                          time.perf_counter() - t0)
+        T, fit, note = refine_from(instances[iid], instances[res.template_id], res.transform, reg)
+        out[iid] = replace(res, transform=T, fitness=fit, time_s=time.perf_counter() - t0,
+                           message=f"instance {iid}: from the ground-truth pose, ICP{note}, fitness {fit:.3f}")
     return out
 
 
