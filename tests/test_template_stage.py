@@ -113,7 +113,7 @@ def test_export_ply_and_instanced_file_render_the_replaced_scene(replaced, tmp_p
 
     from splatreplace_ns.export import ExportCommand
     from splatreplace_ns.render import rasterize
-    from splatreplace_ns.template.export import load_instanced
+    from splatreplace_ns.template.export import load_instanced, render_difference
     from splatreplace_ns.render import world_to_camera
 
     _, config, trainer = replaced
@@ -153,7 +153,10 @@ def test_export_ply_and_instanced_file_render_the_replaced_scene(replaced, tmp_p
     inst = load_instanced(tmp_path / "instanced.npz")
     composed = inst.compose()
     from_npz = render(composed.means, composed.quats, composed.log_scales, composed.logit_opacities, composed.sh)
-    assert (from_npz - expected).abs().max() < 5e-3  # offsets are stored as float16
+    assert (from_npz - expected).abs().max() < 5e-3  # float16 offsets, the ones under 0.5/255 of colour dropped
+    check = render_difference(model, tmp_path / "instanced.npz", trainer.pipeline.datamanager.eval_dataset.cameras)
+    assert check["views"] == 1
+    assert check["max_abs"] == pytest.approx(float((from_npz.clamp(0, 1) - expected.clamp(0, 1)).abs().max()), abs=1e-6)
     assert (tmp_path / "instanced.npz").stat().st_size < (tmp_path / "splat.ply").stat().st_size
 
     with pytest.raises(ValueError, match="not an instanced file"):
