@@ -44,6 +44,7 @@ def test_dropped_offsets_change_no_colour_by_more_than_the_tolerance():
     eps = offset_epsilon(lam, K, tol)
     gen = torch.Generator().manual_seed(0)
     dirs = torch.nn.functional.normalize(torch.randn(4000, 3, generator=gen, dtype=torch.float64), dim=-1)
+    # the basis as the renderer applies it: the colour of coefficient j alone
     one_hot = torch.eye(K, dtype=torch.float64)[:, :, None].expand(K, K, 3)
     basis = torch.stack([spherical_harmonics(3, dirs, one_hot[j].expand(len(dirs), K, 3))[:, 0] for j in range(K)], 1)
     adversarial = 0.999 * eps * torch.sign(basis)  # [dirs, K]: dropped entirely by pack_offsets

@@ -80,7 +80,7 @@ def instance_poses(q0: Tensor, t0: Tensor, delta: Tensor) -> tuple[Tensor, Tenso
 
 
 @lru_cache(maxsize=8)
-def _sample_directions(n: int) -> Tensor:
+def sample_directions(n: int) -> Tensor:
     """[n, 3] float64 unit vectors spread over the sphere (Fibonacci lattice)."""
     k = torch.arange(n, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * k / n
@@ -102,7 +102,7 @@ def sh_rotation(R: Tensor, degree: int) -> Tensor:
         [..., K, K] with K = (degree + 1)², differentiable in R.
     """
     K = num_sh_bases(degree)
-    dirs = _sample_directions(max(4 * K, 32)).to(device=R.device)
+    dirs = sample_directions(max(4 * K, 32)).to(device=R.device)
     pinv = torch.linalg.pinv(sh_basis(degree, dirs)).to(R.dtype)  # [K, n], float64 accuracy
     rotated = torch.einsum("...ji,nj->...ni", R, dirs.to(R.dtype))  # Rᵀ d: [..., n, 3]
     Y_rot = sh_basis(degree, rotated)  # [..., n, K]

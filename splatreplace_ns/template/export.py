@@ -42,18 +42,11 @@ def ply_bytes(num_gaussians: int, sh_coeffs: int) -> int:
 def sh_basis_abs_bound(num_coeffs: int, samples: int = 20000) -> float:
     """max over view directions d of Σ_k |Y_k(d)|, the first ``num_coeffs`` real SH bases as the renderer
     evaluates them (sampled on a Fibonacci sphere, plus 5 % for the directions between samples)."""
-    from splatreplace_ns.render.sh import spherical_harmonics
+    from splatreplace_ns.render.sh import sh_basis
+    from splatreplace_ns.template.compose import sample_directions
 
     degree = int(round(num_coeffs**0.5)) - 1
-    k = np.arange(samples) + 0.5
-    z = 1.0 - 2.0 * k / samples
-    phi = np.pi * (1.0 + 5.0**0.5) * k
-    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
-    dirs = torch.tensor(np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1), dtype=torch.float64)
-    one_hot = torch.eye(num_coeffs, dtype=torch.float64)[:, :, None].expand(num_coeffs, num_coeffs, 3)
-    values = torch.stack([spherical_harmonics(degree, dirs, one_hot[j].expand(samples, num_coeffs, 3))[:, 0]
-                          for j in range(num_coeffs)], dim=1)  # [samples, num_coeffs]: Y_j(d)
-    return 1.05 * float(values.abs().sum(dim=1).max())
+    return 1.05 * float(sh_basis(degree, sample_directions(samples))[:, :num_coeffs].abs().sum(dim=1).max())
 
 
 def offset_epsilon(lam: float, num_coeffs: int, colour_tolerance: float = DEFAULT_COLOUR_TOLERANCE) -> float:
