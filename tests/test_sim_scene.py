@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 
@@ -157,6 +158,44 @@ def test_lighting_differs_between_copies_only_in_the_lighting_preset():
 
     assert spread("office") < 1e-6
     assert spread("lighting") > 0.1
+
+
+def _chair_face_light(light: str) -> float:
+    """Largest spread, over the office's chairs, of the light reaching the same points of every face of a chair
+    (its side faces turn with the copy)."""
+    r = Renderer(PRESETS["office"].layout(0, light).scene)
+    mesh = class_mesh("chair")
+    mesh.compute_triangle_normals()
+    tri = np.asarray(mesh.triangles)
+    centres = np.asarray(mesh.vertices)[tri].mean(axis=1)
+    normals = np.asarray(mesh.triangle_normals)
+    light_per_copy = []
+    for inst in (i for i in r.scene.instances if i.cls == "chair"):
+        R, t = inst.pose[:3, :3], inst.pose[:3, 3]
+        light_per_copy.append(r.irradiance(centres @ R.T + t, normals @ R.T))
+    return float(np.ptp(np.stack(light_per_copy), axis=0).max())
+
+
+def test_a_slanted_sun_lights_turned_copies_differently_and_overhead_alike():
+    """Under the office's slanted sun a face of a chair gets different light on copies turned differently
+    (per-instance lighting the preset does not ask for); with ``light="overhead"`` every copy gets the same."""
+    assert _chair_face_light("preset") > 0.3
+    assert _chair_face_light("overhead") < 1e-5
+    with pytest.raises(ValueError, match="light"):
+        PRESETS["office"].layout(0, "sideways")
+
+
+def test_overhead_light_changes_the_images_only(tmp_path):
+    from splatreplace_ns.sim import make_scene
+
+    for light in ("preset", "overhead"):
+        make_scene("tiny", tmp_path / light, seed=0, n_train=2, n_test=1, workers=1, light=light)
+    meta = json.loads((tmp_path / "overhead" / "transforms.json").read_text())
+    assert meta["sim"]["light"] == "overhead"
+    for sub in ("masks", "depth", "images"):
+        same = [(tmp_path / "preset" / sub / f.name).read_bytes() == f.read_bytes()
+                for f in sorted((tmp_path / "overhead" / sub).iterdir())]
+        assert all(same) if sub != "images" else not any(same), sub
 
 
 def test_matchers_find_features_on_instances():

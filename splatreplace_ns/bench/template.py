@@ -22,7 +22,7 @@ import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Literal, Optional, Tuple
 
 import torch
 
@@ -65,6 +65,9 @@ class BenchTemplateConfig:
     """Training outputs."""
     threads: int = 2
     """torch CPU threads."""
+    light: Literal["preset", "overhead"] = "preset"
+    """preset: the scene lit as its preset draws it. overhead: every directional light straight overhead, so that
+    copies turned differently are lit alike (what the shared template gains without per-instance lighting)."""
 
     def main(self) -> Dict:
         result = run_template_bench(self)
@@ -270,8 +273,8 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
         raise ValueError(f"unknown ablation(s) {unknown}; known: {', '.join(ABLATIONS + ORACLE_ABLATIONS)}")
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
     t0 = time.perf_counter()
-    data = cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
-    out = cfg.out_dir / f"template_{cfg.preset}"
+    data = cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root, cfg.light)
+    out = cfg.out_dir / (f"template_{cfg.preset}" + ("" if cfg.light == "preset" else f"_{cfg.light}"))
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     sim_s = time.perf_counter() - t0
     pair = train_ours_and_baseline(data, out, B, C, F, resumable=bool(cfg.ablations))
@@ -295,7 +298,7 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
         "sizes": sizes,
         "registration": registration,
         "time_s": {**times, "total": time.perf_counter() - t0},
-        "parameters": {"res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": B,
+        "parameters": {"res": cfg.res, "light": cfg.light, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": B,
                        "contrastive_iterations": C, "finetune_iterations": F, "baseline_iterations": B + C + F},
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
                     "threads": torch.get_num_threads()},

@@ -8,7 +8,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import tyro
 from typing_extensions import Annotated
@@ -53,6 +53,9 @@ class SimCommand:
     """Training views; None: the preset's."""
     n_test: Annotated[Optional[int], tyro.conf.arg(metavar="N")] = None
     """Test views (far from or beside the training path, depending on the preset); None: the preset's."""
+    light: Literal["preset", "overhead"] = "preset"
+    """preset: lit as the preset draws it. overhead: every directional light moved straight overhead, so that
+    copies turned differently are lit alike (isolates the template from per-instance lighting)."""
     list: bool = False
     """Describe the presets and their effects, then exit."""
 
@@ -94,6 +97,7 @@ class SimCommand:
                 n_train=self.n_train,
                 n_test=self.n_test,
                 progress=report,
+                light=self.light,
             )
         elapsed = time.perf_counter() - start
         meta = json.loads(path.read_text())
@@ -103,7 +107,8 @@ class SimCommand:
         views = f"{sim['n_train']} train + {sim['n_test']} test views"
         console.print(f"  {sim['preset']} {meta['w']}x{meta['h']}, {views}, seed {sim['seed']}")
         console.print("  instances: " + ", ".join(f"{n} {c} ({CLASS_SYMMETRY[c]})" for c, n in classes.items()))
-        console.print(f"  effects: {', '.join(k for k, v in sim['effects'].items() if v) or '(none)'}")
+        console.print(f"  effects: {', '.join(k for k, v in sim['effects'].items() if v) or '(none)'}"
+                      + (f"; light: {sim['light']}" if sim.get("light", "preset") != "preset" else ""))
         console.print(f"  points3d.ply: {sim['n_points']} points")
         console.print(
             f"  mean distance test camera → nearest training camera: {sim['mean_test_to_train_distance']:.2f} m"

@@ -121,11 +121,11 @@ def _render_frames(
     return results
 
 
-def _init_worker(preset_name: str, seed: int, out: Path, n_points: int) -> None:
+def _init_worker(preset_name: str, seed: int, out: Path, n_points: int, light: str = "preset") -> None:
     """Worker-process initialiser: rebuild the (deterministic) scene once per process."""
     p = get_preset(preset_name)
     _worker_state.update(
-        renderer=Renderer(p.layout(seed).scene, supersample=p.supersample), out=out, seed=seed, n_points=n_points
+        renderer=Renderer(p.layout(seed, light).scene, supersample=p.supersample), out=out, seed=seed, n_points=n_points
     )
 
 
@@ -143,6 +143,7 @@ def _render_all(
     n_points: int,
     workers: int,
     progress: Optional[Callable[[int, int], None]],
+    light: str = "preset",
 ) -> dict[int, tuple[dict, Optional[tuple[np.ndarray, np.ndarray]]]]:
     """Render every camera, in this process or spread over ``workers`` processes (same bytes either way)."""
     total = len(cams)
@@ -160,14 +161,14 @@ def _render_all(
         try:
             ctx = mp.get_context("spawn")  # no fork: the parent may hold threads (open3d, torch)
             with ProcessPoolExecutor(
-                workers, mp_context=ctx, initializer=_init_worker, initargs=(p.name, seed, out, n_points)
+                workers, mp_context=ctx, initializer=_init_worker, initargs=(p.name, seed, out, n_points, light)
             ) as ex:
                 for batch in ex.map(_worker_job, chunks):
                     collect(batch)
             return results
         except BrokenProcessPool:
             warnings.warn("worker processes could not start; rendering in this process", RuntimeWarning, stacklevel=3)
-    renderer = Renderer(p.layout(seed).scene, supersample=p.supersample)
+    renderer = Renderer(p.layout(seed, light).scene, supersample=p.supersample)
     for jobs in chunks:
         if not all(j[0] in results for j in jobs):
             collect(_render_frames(renderer, jobs, out, seed, n_points))
@@ -219,6 +220,7 @@ def make_scene(
     n_test: Optional[int] = None,
     workers: Optional[int] = None,
     progress: Optional[Callable[[int, int], None]] = None,
+    light: str = "preset",
 ) -> Path:
     """Write a synthetic repetitive scene with ground truth.
 
@@ -231,6 +233,8 @@ def make_scene(
         n_test: test views (default: the preset's); val = test.
         workers: rendering processes (default: up to 2, fewer for small jobs); 1 renders in this process.
         progress: called as ``progress(done, total)`` after each rendered chunk.
+        light: "preset" (as the preset draws it) or "overhead" (every directional light at the zenith:
+            :func:`~splatreplace_ns.sim.presets.overhead_lighting`).
     Returns:
         Path of the written transforms.json.
     """
@@ -242,7 +246,7 @@ def make_scene(
     if n_train < 1 or n_test < 1:
         raise ValueError(f"need at least one training and one test view, got n_train={n_train}, n_test={n_test}")
 
-    layout = p.layout(seed)
+    layout = p.layout(seed, light)
     scene = layout.scene
     cam_rng = np.random.default_rng([seed, _STREAM_CAMERAS])
     poses = trajectory(layout.train_path, n_train, cam_rng) + trajectory(layout.test_path, n_test, cam_rng, phase=0.5)
@@ -255,7 +259,7 @@ def make_scene(
     if workers is None:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         workers = min(2, cores) if total * w * h >= 1_000_000 else 1
-    results = _render_all(p, seed, cams, n_train, out, n_points, workers, progress)
+    results = _render_all(p, seed, cams, n_train, out, n_points, workers, progress, light)
 
     names = [f"images/{_frame_name(i)}" for i in range(total)]
     train_names, test_names = names[:n_train], names[n_train:]
@@ -313,6 +317,7 @@ def make_scene(
             "preset": p.name,
             "seed": seed,
             "effects": asdict(p.effects),
+            "light": light,
             "resolution": [w, h],
             "n_train": n_train,
             "n_test": n_test,

@@ -48,6 +48,27 @@ EFFECT_HELP: dict[str, str] = {
 }
 
 
+LIGHTS = ("preset", "overhead")
+"""How a scene is lit: "preset" as the preset draws it; "overhead": every directional light moved to the zenith
+(:func:`overhead_lighting`)."""
+
+
+def overhead_lighting(scene: Scene) -> Scene:
+    """The scene with every directional light straight overhead, colours kept (point lights, ambient and shadows
+    unchanged).
+
+    Under a slanted sun a face's shading depends on where it points in the world, so two upright copies turned
+    differently show the same face differently lit: an effect of its own (per-instance lighting) that a preset
+    without ``varied_lighting`` does not call for. Overhead, Lambertian shading depends on a face's tilt only, the
+    same for every upright copy whatever its turn.
+    """
+    lights = [
+        dataclasses.replace(light, vector=(0.0, 0.0, 1.0)) if light.kind == "directional" else light
+        for light in scene.lights
+    ]
+    return dataclasses.replace(scene, lights=lights)
+
+
 @dataclass(frozen=True)
 class Layout:
     """A built scene with its capture paths."""
@@ -77,9 +98,14 @@ class Preset:
     dB full / masked with them supervised as far, 23.47 / 23.39 without; the baseline's full PSNR 23.13 and
     23.21)."""
 
-    def layout(self, seed: int = 0) -> Layout:
-        """Build the scene and capture paths for a seed (layout jitter only)."""
-        return self.build(self.effects, np.random.default_rng([seed, 0]))
+    def layout(self, seed: int = 0, light: str = "preset") -> Layout:
+        """Build the scene and capture paths for a seed (layout jitter only), lit as ``light`` says (:data:`LIGHTS`)."""
+        if light not in LIGHTS:
+            raise ValueError(f"light must be one of {LIGHTS}, got {light!r}")
+        layout = self.build(self.effects, np.random.default_rng([seed, 0]))
+        if light == "overhead":
+            layout = dataclasses.replace(layout, scene=overhead_lighting(layout.scene))
+        return layout
 
     def contents(self) -> dict[str, int]:
         """{class: count} of the repeated objects."""
