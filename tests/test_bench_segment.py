@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from splatreplace_ns.bench.segment import BenchSegmentConfig, count_leftovers, run_segment_bench
+from splatreplace_ns.bench.segment import BenchSegmentConfig, count_leftovers, leftovers_by_instance, run_segment_bench
 from splatreplace_ns.sim import class_mesh
 
 
@@ -34,6 +34,32 @@ def test_leftovers_are_background_gaussians_inside_or_next_to_an_instance():
     assert count_leftovers(means[:0], labels[:0], instances) == 0
 
 
+def test_leftovers_are_told_apart_by_the_instance_they_sit_in():
+    mesh = class_mesh("crate")
+    on_surface = torch.tensor(np.asarray(mesh.vertices)[0], dtype=torch.float64)
+    another_vertex = torch.tensor(np.asarray(mesh.vertices)[len(mesh.vertices) // 2], dtype=torch.float64)
+    poses = []
+    for shift in ([0.0, 0.0, 0.0], [5.0, 0.0, 0.0]):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, 3] = torch.tensor(shift)
+        poses.append(pose)
+    instances = [{"id": 3, "class": "crate", "transform_matrix": poses[0]},
+                 {"id": 7, "class": "crate", "transform_matrix": poses[1]}]
+    means = torch.stack([
+        on_surface + poses[0][:3, 3],                    # background on crate 3
+        on_surface + poses[1][:3, 3],                    # background on crate 7
+        on_surface + poses[1][:3, 3],                    # again on crate 7, but labelled as it
+        another_vertex + poses[1][:3, 3],                # background elsewhere on crate 7
+        torch.tensor([2.5, 10.0, 0.0], dtype=torch.float64),  # between them, near neither
+    ]).float()
+    labels = torch.tensor([0, 0, 7, 0, 0])
+    by_instance = leftovers_by_instance(means, labels, instances)
+    assert {k: v.tolist() for k, v in by_instance.items()} == {
+        3: [True, False, False, False], 7: [False, True, True, False]}
+    assert count_leftovers(means, labels, instances) == 3
+    assert {k: v.numel() for k, v in leftovers_by_instance(means, torch.full((5,), 3), instances).items()} == {3: 0, 7: 0}
+
+
 def test_tiny_run_writes_the_interface(tmp_path):
     cfg = BenchSegmentConfig(
         preset="tiny", res="64x48", n_train=12, n_test=4, base_iterations=150, contrastive_iterations=200,
@@ -50,5 +76,8 @@ def test_tiny_run_writes_the_interface(tmp_path):
     assert all(isinstance(leftover[k], int) and leftover[k] >= 0 for k in ("none", "reg", "reg_carve"))
     # carving only removes background Gaussians near instances, never adds them
     assert leftover["reg_carve"] <= leftover["reg"]
+    # the breakdown names every instance, and each leftover sits in at least one of them
+    by_instance = leftover["reg_carve_by_instance"]
+    assert set(by_instance) == {"1", "2", "3"} and sum(by_instance.values()) >= leftover["reg_carve"]
     assert all(math.isfinite(v) and v >= 0 for v in written["time_s"].values())
     assert {"base", "contrastive", "segmentation", "total"} <= set(written["time_s"])

@@ -13,7 +13,7 @@ import pytest
 
 from splatreplace_ns.sim import CLASS_SYMMETRY, CLASSES, PRESETS, class_mesh
 from splatreplace_ns.sim.cameras import PinholeCamera, intrinsics, look_at, trajectory
-from splatreplace_ns.sim.geometry import rotation_z
+from splatreplace_ns.sim.geometry import class_signed_distance, rotation_z
 from splatreplace_ns.sim.render import Renderer
 from splatreplace_ns.sim.textures import albedo
 
@@ -77,6 +77,40 @@ def test_class_meshes_are_object_frame_and_distinct():
     for i in range(len(names)):
         for j in range(i + 1, len(names)):
             assert np.abs(colours[names[i]] - colours[names[j]]).max() > 0.04, (names[i], names[j])
+
+
+# (class, points inside its solid, points outside it), from the part sizes in sim/geometry.py
+_SOLID_CASES = [
+    ("chair", [(0.0, 0.0, 0.465), (0.2, 0.2, 0.22), (-0.205, 0.0, 0.8)], [(0.0, 0.0, 0.3), (0.0, 0.0, 0.6)]),
+    ("table", [(0.0, 0.0, 0.74), (0.62, 0.32, 0.3), (0.3, -0.12, 0.665)], [(0.0, 0.0, 0.3), (0.0, 0.2, 0.5)]),
+    ("pillar", [(0.0, 0.0, 1.5), (0.3, 0.3, 0.08), (0.35, 0.35, 2.89)], [(0.35, 0.0, 1.5), (0.0, 0.0, -1.0),
+                                                                         (-2.177, -2.028, -1.795)]),
+    ("pawn", [(0.0, 0.0, 0.2), (0.0, 0.0, 0.41), (0.14, 0.0, 0.02)], [(0.12, 0.0, 0.2), (0.0, 0.0, 0.6)]),
+    ("crate", [(0.0, 0.0, 0.2), (0.2, 0.15, 0.02), (0.0, 0.0, 0.385)], [(0.0, 0.0, 0.02), (0.0, 0.3, 0.2)]),
+]
+
+
+@pytest.mark.parametrize("name, inside, outside", _SOLID_CASES)
+def test_signed_distance_knows_the_inside_of_a_mesh_made_of_parts(name, inside, outside):
+    mesh = class_mesh(name)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    points = np.array(inside + outside, dtype=np.float64)
+    unsigned = scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+    signed = class_signed_distance(name, points)
+    assert (signed[: len(inside)] < 0).all() and (signed[len(inside):] > 0).all(), signed
+    np.testing.assert_allclose(np.abs(signed), unsigned, rtol=1e-5)
+
+
+def test_signed_distance_far_from_every_class_is_outside():
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(64, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    for name in CLASSES:
+        mesh = class_mesh(name)
+        low, high = mesh.get_min_bound(), mesh.get_max_bound()
+        far = (low + high) / 2 + 2.0 * np.linalg.norm(high - low) * directions  # a diagonal beyond the box
+        assert (class_signed_distance(name, far) > 0.5 * np.linalg.norm(high - low)).all(), name
 
 
 def test_presets_have_the_requested_content_and_only_their_effects():

@@ -13,7 +13,8 @@ click queries (τ = 0.1); they are scored against the ground-truth masks (mIoU, 
 (``miou_train``): a preset whose test views look at sides no training view saw (temple) has no surface
 there to segment, and the training views show the segmentation apart from that. Leftovers =
 background-labelled Gaussians whose centres lie inside an instance's ground-truth mesh or within 1 % of
-its bounding-box diagonal from it. ``miou_gt_labels`` (test views) and ``miou_gt_labels_train`` are the
+its bounding-box diagonal from it (inside: :func:`splatreplace_ns.sim.geometry.class_signed_distance`), also
+given per instance after carving. ``miou_gt_labels`` (test views) and ``miou_gt_labels_train`` are the
 ceiling of the reconstruction: its Gaussians labelled by a vote of the ground-truth training masks and
 rendered the same way.
 """
@@ -80,35 +81,49 @@ def _scene(cfg: BenchSegmentConfig) -> Path:
     return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
 
 
-def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01) -> int:
-    """Background Gaussians inside an instance or within ``near`` × its bounding-box diagonal of it.
+def leftovers_by_instance(
+    means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01
+) -> Dict[int, torch.Tensor]:
+    """Which background Gaussians lie inside each instance's mesh or within ``near`` × its bounding-box
+    diagonal of it.
 
     Args:
         means: [N, 3] centres in the normalised world frame.
         labels: [N] instance labels (0 = background).
-        instances: dataparser instances with ``transform_matrix`` (object→normalised world) and ``class``.
+        instances: dataparser instances with ``id``, ``transform_matrix`` (object→normalised world) and ``class``.
+    Returns:
+        {instance id: [B] bool over the B background Gaussians (``labels == 0``, in order)}.
     """
-    import open3d as o3d
-
     from splatreplace_ns.sim import class_mesh
+    from splatreplace_ns.sim.geometry import class_signed_distance
 
-    background = means[labels == 0].double()
-    hit = torch.zeros(background.shape[0], dtype=torch.bool)
-    scenes = {}
+    is_background = labels == 0
+    background = means[is_background].double()
+    diagonals = {}
+    near_each: Dict[int, torch.Tensor] = {}
     for inst in instances:
-        if "transform_matrix" not in inst or background.shape[0] == 0:
+        if "transform_matrix" not in inst:
             continue
-        if inst["class"] not in scenes:
+        if background.shape[0] == 0:
+            near_each[int(inst["id"])] = torch.zeros(0, dtype=torch.bool)
+            continue
+        if inst["class"] not in diagonals:
             mesh = class_mesh(inst["class"])
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-            diag = float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound()))
-            scenes[inst["class"]] = (scene, diag)
-        scene, diag = scenes[inst["class"]]
+            diagonals[inst["class"]] = float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound()))
+        diag = diagonals[inst["class"]]
         to_object = torch.linalg.inv(inst["transform_matrix"].double())
-        local = (background @ to_object[:3, :3].T + to_object[:3, 3]).float().numpy()
-        signed = scene.compute_signed_distance(o3d.core.Tensor(local)).numpy()
-        hit |= torch.from_numpy(signed <= near * diag)
+        local = (background @ to_object[:3, :3].T + to_object[:3, 3]).numpy()
+        signed = class_signed_distance(inst["class"], local)
+        near_each[int(inst["id"])] = torch.from_numpy(signed <= near * diag)
+    return near_each
+
+
+def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01) -> int:
+    """Background Gaussians inside an instance or within ``near`` × its bounding-box diagonal of it (each
+    counted once; arguments as :func:`leftovers_by_instance`)."""
+    hit = torch.zeros(int((labels == 0).sum()), dtype=torch.bool)
+    for near_one in leftovers_by_instance(means, labels, instances, near).values():
+        hit |= near_one
     return int(hit.sum())
 
 
@@ -166,9 +181,12 @@ def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, car
         "total": end - marks["start"],
     }
     record["carved"] = pipeline.segmentation_report.get("carved", 0)
-    record["leftover_final"] = count_leftovers(
-        pipeline.model.means.detach().cpu(), pipeline.model.instance_labels, instances
-    )
+    means, labels = pipeline.model.means.detach().cpu(), pipeline.model.instance_labels.cpu()
+    record["leftover_final"] = count_leftovers(means, labels, instances)
+    # which ground-truth instance the leftovers sit in
+    record["leftover_final_by_instance"] = {
+        str(k): int(v.sum()) for k, v in leftovers_by_instance(means, labels, instances).items()
+    }
     record["gaussians"] = pipeline.model.num_points
     return record
 
@@ -207,6 +225,7 @@ def run_segment_bench(cfg: BenchSegmentConfig) -> Dict:
             "none": None if noreg is None else noreg["final"]["leftover"],
             "reg": reg["final"]["leftover"],
             "reg_carve": reg["leftover_final"],
+            "reg_carve_by_instance": reg["leftover_final_by_instance"],
         },
         "carved": reg["carved"],
         "time_s": {"sim": sim_s, **reg["time_s"], **({"noreg_total": noreg["time_s"]["total"]} if noreg else {})},
