@@ -222,6 +222,7 @@ def test_bench_json_interface(tiny_bench):
     for key in ("machine", "parameters", "time_s"):
         assert key in data
     assert data["time_s"]["total"] > 0 and data["machine"]["versions"]["torch"]
+    assert data["parameters"]["light"] == "preset"
 
 
 def test_truth_start_row_pairwise_matrices_and_nearest_turns(tiny_bench, tmp_path):
@@ -313,6 +314,17 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
         [e["rot_err_deg"] for e in seg_row["per_instance"]], abs=1e-6, nan_ok=True)
     with pytest.raises(ValueError, match="--seg-only needs --seg-run"):
         run_register_bench(replace(seg_cfg, seg_only=True, seg_run=None))
+
+
+def test_overhead_light_gets_its_own_scene(tmp_path):
+    """--light overhead registers on the same scene lit from the zenith, cached (and so trained) apart."""
+    from splatreplace_ns.bench.register import _scene
+
+    cfg = BenchRegisterConfig(preset="tiny", res="32x24", n_train=2, n_test=1, data_root=tmp_path)
+    lit = {light: _scene(replace(cfg, light=light)) for light in ("preset", "overhead")}
+    assert lit["preset"] != lit["overhead"]
+    for light, path in lit.items():
+        assert json.loads((path / "transforms.json").read_text())["sim"]["light"] == light
 
 
 def test_row_settings_differ_only_where_the_row_says():

@@ -194,17 +194,17 @@ def test_lighting_differs_between_copies_only_in_the_lighting_preset():
     assert spread("lighting") > 0.1
 
 
-def _chair_face_light(light: str) -> float:
-    """Largest spread, over the office's chairs, of the light reaching the same points of every face of a chair
-    (its side faces turn with the copy)."""
-    r = Renderer(PRESETS["office"].layout(0, light).scene)
-    mesh = class_mesh("chair")
+def _face_light_spread(light: str, preset: str = "office", cls: str = "chair") -> float:
+    """Largest spread, over a preset's copies of ``cls``, of the light reaching the same points of every face of
+    the object (its side faces turn with the copy)."""
+    r = Renderer(PRESETS[preset].layout(0, light).scene)
+    mesh = class_mesh(cls)
     mesh.compute_triangle_normals()
     tri = np.asarray(mesh.triangles)
     centres = np.asarray(mesh.vertices)[tri].mean(axis=1)
     normals = np.asarray(mesh.triangle_normals)
     light_per_copy = []
-    for inst in (i for i in r.scene.instances if i.cls == "chair"):
+    for inst in (i for i in r.scene.instances if i.cls == cls):
         R, t = inst.pose[:3, :3], inst.pose[:3, 3]
         light_per_copy.append(r.irradiance(centres @ R.T + t, normals @ R.T))
     return float(np.ptp(np.stack(light_per_copy), axis=0).max())
@@ -213,8 +213,11 @@ def _chair_face_light(light: str) -> float:
 def test_a_slanted_sun_lights_turned_copies_differently_and_overhead_alike():
     """Under the office's slanted sun a face of a chair gets different light on copies turned differently
     (per-instance lighting the preset does not ask for); with ``light="overhead"`` every copy gets the same."""
-    assert _chair_face_light("preset") > 0.3
-    assert _chair_face_light("overhead") < 1e-5
+    assert _face_light_spread("preset") > 0.3
+    assert _face_light_spread("overhead") < 1e-5
+    # the temple's columns, turned between -165 and 97 degrees, more so
+    assert _face_light_spread("preset", "temple", "pillar") > 0.7
+    assert _face_light_spread("overhead", "temple", "pillar") < 1e-5
     with pytest.raises(ValueError, match="light"):
         PRESETS["office"].layout(0, "sideways")
 

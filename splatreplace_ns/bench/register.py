@@ -51,7 +51,7 @@ import platform
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import torch
@@ -78,6 +78,9 @@ class BenchRegisterConfig:
     """Where to write the results as JSON."""
     res: str = "160x120"
     """Scene resolution WxH."""
+    light: Literal["preset", "overhead"] = "preset"
+    """preset: the scene lit as its preset draws it. overhead: every directional light straight overhead, so that
+    copies turned differently are lit alike (its own cached scene and base model)."""
     n_train: int = 60
     """Training views."""
     n_test: int = 12
@@ -239,7 +242,7 @@ class BenchScene:
 def _scene(cfg: BenchRegisterConfig) -> Path:
     from splatreplace_ns.bench.scenes import cached_scene
 
-    return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
+    return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root, cfg.light)
 
 
 def _shown_path(path: Path) -> str:
@@ -810,8 +813,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         result["segmentation"] = seg
     result["time_s"] = {**scene.time_s, "total": time.perf_counter() - t_start}
     result["parameters"] = {
-        "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
-        "depth_tolerance": cfg.depth_tolerance, "rows": list(cfg.rows),
+        "res": cfg.res, "light": cfg.light, "n_train": cfg.n_train, "n_test": cfg.n_test,
+        "base_iterations": cfg.base_iterations, "depth_tolerance": cfg.depth_tolerance, "rows": list(cfg.rows),
         "model_reused": scene.reused,
         "run": _shown_path(scene.config_path), "sh_degree": model_sh_degree(pipeline),
         "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)},
