@@ -121,8 +121,14 @@ def leftovers_by_instance(
 def count_leftovers(means: torch.Tensor, labels: torch.Tensor, instances: List[Dict], near: float = 0.01) -> int:
     """Background Gaussians inside an instance or within ``near`` × its bounding-box diagonal of it (each
     counted once; arguments as :func:`leftovers_by_instance`)."""
-    hit = torch.zeros(int((labels == 0).sum()), dtype=torch.bool)
-    for near_one in leftovers_by_instance(means, labels, instances, near).values():
+    return leftover_total(leftovers_by_instance(means, labels, instances, near), int((labels == 0).sum()))
+
+
+def leftover_total(near_each: Dict[int, torch.Tensor], n_background: int) -> int:
+    """How many of the ``n_background`` Gaussians sit in at least one instance (``near_each`` as returned by
+    :func:`leftovers_by_instance`)."""
+    hit = torch.zeros(n_background, dtype=torch.bool)
+    for near_one in near_each.values():
         hit |= near_one
     return int(hit.sum())
 
@@ -182,11 +188,10 @@ def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, car
     }
     record["carved"] = pipeline.segmentation_report.get("carved", 0)
     means, labels = pipeline.model.means.detach().cpu(), pipeline.model.instance_labels.cpu()
-    record["leftover_final"] = count_leftovers(means, labels, instances)
+    near_each = leftovers_by_instance(means, labels, instances)
+    record["leftover_final"] = leftover_total(near_each, int((labels == 0).sum()))
     # which ground-truth instance the leftovers sit in
-    record["leftover_final_by_instance"] = {
-        str(k): int(v.sum()) for k, v in leftovers_by_instance(means, labels, instances).items()
-    }
+    record["leftover_final_by_instance"] = {str(k): int(v.sum()) for k, v in near_each.items()}
     record["gaussians"] = pipeline.model.num_points
     return record
 
