@@ -30,3 +30,23 @@ def test_views_without_the_metric_are_left_out_and_too_few_give_none():
     split = gain_by_baseline_quality(rows([20.0, None, 22.0]), rows([21.0, 25.0, 22.5]))
     assert split["worst_half"]["views"] == [0] and split["rest"]["views"] == [2]
     assert gain_by_baseline_quality([], []) is None
+
+
+def test_each_configuration_gets_its_own_run_folder():
+    from dataclasses import replace
+
+    from splatreplace_ns.bench.template import BenchTemplateConfig, run_folder_name
+
+    demo = BenchTemplateConfig(preset="office", res="128x96", n_train=48, n_test=8, base_iterations=1500,
+                               contrastive_iterations=500, finetune_iterations=1000)
+    assert run_folder_name(demo) == "template_office_128x96_48v8_1500-500-1000"
+    variants = [
+        replace(demo, res="160x120"), replace(demo, n_train=60), replace(demo, n_test=12),
+        replace(demo, base_iterations=3000), replace(demo, contrastive_iterations=1000),
+        replace(demo, finetune_iterations=2000), replace(demo, light="overhead"), replace(demo, preset="temple"),
+    ]
+    names = {run_folder_name(c) for c in variants}
+    assert len(names) == len(variants) and run_folder_name(demo) not in names
+    # what does not change the training (ablations, threads, where the JSON goes) keeps the folder
+    same = replace(demo, ablations=("shared_only",), threads=1, json=None)
+    assert run_folder_name(same) == run_folder_name(demo)

@@ -267,6 +267,16 @@ def run_ablation(name: str, data: Path, out: Path, B: int, C: int, F: int, check
     return result
 
 
+def run_folder_name(cfg: BenchTemplateConfig) -> str:
+    """The folder under ``out_dir`` that holds one configuration's runs: named by everything that changes what
+    they train (preset, light, resolution, views, iterations), so that a run of another configuration does not
+    overwrite the checkpoints (which ``--seg-step`` of ``bench register`` and the ablations resume from) of this
+    one. E.g. ``template_office_128x96_48v8_1500-500-1000`` or ``template_office_160x120_60v12_3000-1000-2000_overhead``."""
+    name = (f"template_{cfg.preset}_{cfg.res}_{cfg.n_train}v{cfg.n_test}_"
+            f"{cfg.base_iterations}-{cfg.contrastive_iterations}-{cfg.finetune_iterations}")
+    return name + ("" if cfg.light == "preset" else f"_{cfg.light}")
+
+
 def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
     unknown = sorted(set(cfg.ablations) - set(ABLATIONS) - set(ORACLE_ABLATIONS))
     if unknown:
@@ -274,7 +284,7 @@ def run_template_bench(cfg: BenchTemplateConfig) -> Dict:
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
     t0 = time.perf_counter()
     data = cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root, cfg.light)
-    out = cfg.out_dir / (f"template_{cfg.preset}" + ("" if cfg.light == "preset" else f"_{cfg.light}"))
+    out = cfg.out_dir / run_folder_name(cfg)
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     sim_s = time.perf_counter() - t0
     pair = train_ours_and_baseline(data, out, B, C, F, resumable=bool(cfg.ablations))
