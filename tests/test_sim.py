@@ -11,6 +11,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from sim_checks import check_clicks_inside_instances, mask_iou_against_meshes, read_image
+
 from splatreplace_ns.sim import PRESETS, load_scene_meshes, make_scene
 
 SMALL = {  # preset → (resolution, n_train, n_test): small enough for unit tests
@@ -33,23 +35,6 @@ def datasets(tmp_path_factory) -> dict[str, Path]:
 
 def _meta(path: Path) -> dict:
     return json.loads(path.read_text())
-
-
-def _read(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    assert img is not None, path
-    return img
-
-
-def _camera_rays(meta: dict, frame: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre rays of a frame from transforms.json alone (nerfstudio / OpenGL convention)."""
-    w, h = meta["w"], meta["h"]
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    d_cam = np.stack([(u - meta["cx"]) / meta["fl_x"], -(v - meta["cy"]) / meta["fl_y"], -np.ones_like(u)], -1)
-    c2w = np.asarray(frame["transform_matrix"])
-    d = d_cam.reshape(-1, 3) @ c2w[:3, :3].T  # z-component along the optical axis is 1: t is z-depth
-    o = np.broadcast_to(c2w[:3, 3], d.shape)
-    return o, d
 
 
 @pytest.mark.parametrize("name", list(SMALL))
@@ -77,9 +62,9 @@ def test_files_and_format(datasets, name):
         assert np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(t[:3, :3]), 1.0)
         assert np.allclose(t[3], [0, 0, 0, 1])
     for frame in meta["frames"]:
-        rgb = _read(root / frame["file_path"])
-        mask = _read(root / frame["instance_mask_path"])
-        depth = _read(root / frame["depth_file_path"])
+        rgb = read_image(root / frame["file_path"])
+        mask = read_image(root / frame["instance_mask_path"])
+        depth = read_image(root / frame["depth_file_path"])
         assert rgb.shape == (res[1], res[0], 3) and rgb.dtype == np.uint8
         assert mask.shape == res[::-1] and mask.dtype == np.uint16
         assert depth.shape == res[::-1] and depth.dtype == np.uint16
@@ -91,58 +76,13 @@ def test_files_and_format(datasets, name):
 @pytest.mark.parametrize("name", list(SMALL))
 def test_ground_truth_geometry_matches_masks_and_depth(datasets, name):
     """Posed GT meshes, cast with each camera of transforms.json, reproduce masks (IoU >= 0.98) and depth."""
-    path = datasets[name]
-    meta = _meta(path)
-    meshes = load_scene_meshes(path)
-    scene = o3d.t.geometry.RaycastingScene()
-    id_of_geometry = []
-    for k, mesh in meshes.items():
-        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-        id_of_geometry.append(k)
-    id_of_geometry = np.asarray(id_of_geometry)
-    inter = {k: 0 for k in meshes}
-    union = {k: 0 for k in meshes}
-    for frame in meta["frames"]:
-        mask = _read(path.parent / frame["instance_mask_path"]).ravel()
-        depth = _read(path.parent / frame["depth_file_path"]).ravel() * meta["depth_unit_scale_factor"]
-        o, d = _camera_rays(meta, frame)
-        hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d], 1).astype(np.float32)))
-        t = hit["t_hit"].numpy()
-        gid = hit["geometry_ids"].numpy()
-        ok = np.isfinite(t)
-        # an instance is visible where it is hit and nothing of the environment lies in front of it
-        visible = ok & (t <= depth + 2e-3)
-        pred = np.zeros_like(mask)
-        pred[visible] = id_of_geometry[gid[visible]]
-        for k in meshes:
-            a, b = pred == k, mask == k
-            inter[k] += int((a & b).sum())
-            union[k] += int((a | b).sum())
-        both = (pred == mask) & (mask > 0)
-        assert both.any() or not (mask > 0).any()
-        assert np.abs(t[both] - depth[both]).max(initial=0.0) <= 1e-3, "depth PNG matches the ray-cast geometry"
-    for k in meshes:
-        assert union[k] > 0, f"instance {k} never visible"
-        assert inter[k] / union[k] >= 0.98, f"instance {k}: IoU {inter[k] / union[k]:.3f}"
+    for k, iou in mask_iou_against_meshes(datasets[name]).items():
+        assert iou >= 0.98, f"instance {k}: IoU {iou:.3f}"
 
 
 @pytest.mark.parametrize("name", list(SMALL))
 def test_clicks_inside_instances(datasets, name):
-    path = datasets[name]
-    meta = _meta(path)
-    clicks = json.loads((path.parent / "clicks.json").read_text())
-    classes = {inst["id"]: inst["class"] for inst in meta["instances"]}
-    assert sorted(c["id"] for c in clicks) == sorted(classes)
-    mask_of = {f["file_path"]: f["instance_mask_path"] for f in meta["frames"]}
-    for c in clicks:
-        assert c["file_path"] in meta["train_filenames"]
-        assert c["class"] == classes[c["id"]]
-        u, v = c["xy"]
-        mask = _read(path.parent / mask_of[c["file_path"]])
-        assert 0 <= u < meta["w"] and 0 <= v < meta["h"]
-        assert mask[v, u] == c["id"], "click on its instance"
-        inside = np.pad((mask == c["id"]).astype(np.uint8), 1)
-        assert cv2.distanceTransform(inside, cv2.DIST_L2, 5)[v + 1, u + 1] >= 1.5, "click deep inside the mask"
+    check_clicks_inside_instances(datasets[name])
 
 
 def _tree_bytes(root: Path) -> dict[str, bytes]:
@@ -223,7 +163,7 @@ def _local_azimuth_gaps(path: Path, cls: str, min_pixels: int = 20) -> tuple[lis
     for frame in meta["frames"]:
         if frame["file_path"] not in train:
             continue
-        mask = _read(path.parent / frame["instance_mask_path"])
+        mask = read_image(path.parent / frame["instance_mask_path"])
         centre = np.asarray(frame["transform_matrix"])[:3, 3]
         for inst in meta["instances"]:
             if inst["class"] == cls and (mask == inst["id"]).sum() >= min_pixels:

@@ -117,17 +117,23 @@ def test_presets_have_the_requested_content_and_only_their_effects():
     assert set(PRESETS) >= {"office", "temple", "chess", "lighting", "tiny"}
     office = PRESETS["office"]
     assert office.contents() == {"table": 3, "chair": 9}
-    assert office.effects.enabled() == ["occlusion", "coverage_imbalance"]
+    assert office.effects.enabled() == ["occlusion", "coverage_imbalance", "slanted_sun"]
     assert (office.res, office.n_train, office.n_test) == ((320, 240), 200, 50)
     assert PRESETS["temple"].contents()["pillar"] >= 8 and PRESETS["temple"].effects.far_test_views
     chess = Counter(PRESETS["chess"].contents())
     assert chess["pawn"] >= 2 and CLASS_SYMMETRY["pawn"] == "rot_z:inf" and CLASS_SYMMETRY["rook"] == "rot_z:4"
     assert CLASS_SYMMETRY["knight"] == "none"
-    assert set(PRESETS["lighting"].effects.enabled()) == {"varied_lighting", "shadows"}
+    assert set(PRESETS["lighting"].effects.enabled()) == {"varied_lighting", "shadows", "slanted_sun"}
     tiny = PRESETS["tiny"]
     assert tiny.res == (64, 48) and tiny.n_train + tiny.n_test <= 12 and sum(tiny.contents().values()) == 3
     for name, p in PRESETS.items():
         assert p.layout(0).scene.shadows == p.effects.shadows, name
+        # a slanted sun is declared exactly where a directional light is not overhead; lit overhead, it is not
+        suns = [light.vector for light in p.layout(0).scene.lights if light.kind == "directional"]
+        assert p.effects.slanted_sun == any(abs(v[0]) + abs(v[1]) > 1e-9 for v in suns), name
+        assert not p.effects_lit("overhead").slanted_sun
+        assert not any(abs(v[0]) + abs(v[1]) > 1e-9 for v in (light.vector for light in p.layout(0, "overhead").scene.lights
+                                                             if light.kind == "directional")), name
 
 
 def test_layout_depends_on_seed_only():

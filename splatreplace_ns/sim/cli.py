@@ -1,4 +1,5 @@
-"""``splatreplace sim PRESET OUT [--res WxH] [--seed N] [--n-train N] [--n-test N]`` and ``--list``."""
+"""``splatreplace sim PRESET OUT [--res WxH] [--seed N] [--n-train N] [--n-test N]``, ``sim random OUT --seed K`` and
+``--list``."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing_extensions import Annotated
 from splatreplace_ns.sim.generate import make_scene, parse_res
 from splatreplace_ns.sim.geometry import CLASS_SYMMETRY
 from splatreplace_ns.sim.presets import EFFECT_HELP, PRESETS, Effects
+from splatreplace_ns.sim.random_scenes import SUITE_CLASSES, draw_recipe
 
 
 def describe_presets() -> str:
@@ -30,6 +32,9 @@ def describe_presets() -> str:
         lines.append(f"    objects: {contents}")
         lines.append(f"    effects on:  {', '.join(n for n in names if n in on) or '(none)'}")
         lines.append(f"    effects off: {', '.join(n for n in names if n not in on) or '(none)'}")
+    lines.append("random: a scene drawn from --seed (1-3 classes, 3-12 copies each, layouts, turns, setting and "
+                 "effects all drawn); `splatreplace sim random --seed K --list` describes seed K")
+    lines.append(f"    classes: {', '.join(f'{c} ({CLASS_SYMMETRY[c]})' for c in SUITE_CLASSES)}")
     lines.append("effects:")
     lines.extend(f"    {n}: {EFFECT_HELP[n]}" for n in names)
     return "\n".join(lines)
@@ -42,13 +47,14 @@ class SimCommand:
     and a contact sheet."""
 
     preset: Annotated[Optional[str], tyro.conf.Positional, tyro.conf.arg(metavar="PRESET")] = None
-    """Scene preset (see --list)."""
+    """Scene preset (see --list), or random: a scene drawn from --seed."""
     out: Annotated[Optional[Path], tyro.conf.Positional, tyro.conf.arg(metavar="OUT")] = None
     """Output folder."""
     res: Annotated[Optional[str], tyro.conf.arg(metavar="WxH")] = None
     """Image size; None: the preset's."""
     seed: int = 0
-    """Seed of the layout jitter, camera jitter and point noise (same seed, same bytes)."""
+    """Seed of the layout jitter, camera jitter and point noise (same seed, same bytes); for random, also of
+    everything the scene is made of."""
     n_train: Annotated[Optional[int], tyro.conf.arg(metavar="N")] = None
     """Training views; None: the preset's."""
     n_test: Annotated[Optional[int], tyro.conf.arg(metavar="N")] = None
@@ -57,16 +63,17 @@ class SimCommand:
     """preset: lit as the preset draws it. overhead: every directional light moved straight overhead, so that
     copies turned differently are lit alike (isolates the template from per-instance lighting)."""
     list: bool = False
-    """Describe the presets and their effects, then exit."""
+    """Describe the presets and their effects, then exit (with random: describe the scene of --seed)."""
 
     def main(self) -> None:
         if self.list:
-            print(describe_presets())
+            print(draw_recipe(self.seed).describe() if self.preset == "random" else describe_presets())
             return
         if self.preset is None or self.out is None:
             raise SystemExit("splatreplace sim: PRESET and OUT are required (or pass --list to see the presets)")
-        if self.preset not in PRESETS:
-            raise SystemExit(f"splatreplace sim: unknown preset {self.preset!r}; choose one of: {', '.join(PRESETS)}")
+        if self.preset not in PRESETS and self.preset != "random":
+            raise SystemExit(f"splatreplace sim: unknown preset {self.preset!r}; choose one of: "
+                             f"{', '.join(PRESETS)}, random")
         try:
             parse_res(self.res)
         except ValueError as err:
@@ -106,6 +113,8 @@ class SimCommand:
         console.print(f"[bold]wrote[/bold] {path.parent}  ({elapsed:.1f} s)")
         views = f"{sim['n_train']} train + {sim['n_test']} test views"
         console.print(f"  {sim['preset']} {meta['w']}x{meta['h']}, {views}, seed {sim['seed']}")
+        if self.preset == "random":
+            console.print(draw_recipe(self.seed).describe())
         console.print("  instances: " + ", ".join(f"{n} {c} ({CLASS_SYMMETRY[c]})" for c, n in classes.items()))
         console.print(f"  effects: {', '.join(k for k, v in sim['effects'].items() if v) or '(none)'}"
                       + (f"; light: {sim['light']}" if sim.get("light", "preset") != "preset" else ""))

@@ -36,7 +36,8 @@ from splatreplace_ns.sim.writer import (
     write_u16,
 )
 
-GENERATOR_VERSION = 3  # 2: open-sky scenes' transforms.json says depth 0 is far (the sky); 3: clicks in the middle
+GENERATOR_VERSION = 4  # 2: open-sky scenes' transforms.json says depth 0 is far (the sky); 3: clicks in the middle;
+# 4: effects list slanted_sun and per_copy_appearance; instance coverage of the training views; random scenes
 _SUBDIRS = ("images", "masks", "depth")
 _STREAM_CAMERAS, _STREAM_POINTS = 1, 2  # stream 0 is the layout (Preset.layout)
 _POINT_VOXEL = 0.015  # metres; SfM-like points are thinned to one per voxel
@@ -121,9 +122,19 @@ def _render_frames(
     return results
 
 
+def resolve_preset(name: str, seed: int = 0) -> Preset:
+    """A named preset, or ``"random"``: the random scene drawn from ``seed``
+    (:func:`~splatreplace_ns.sim.random_scenes.random_preset`)."""
+    if name == "random":
+        from splatreplace_ns.sim.random_scenes import random_preset
+
+        return random_preset(seed)
+    return get_preset(name)
+
+
 def _init_worker(preset_name: str, seed: int, out: Path, n_points: int, light: str = "preset") -> None:
     """Worker-process initialiser: rebuild the (deterministic) scene once per process."""
-    p = get_preset(preset_name)
+    p = resolve_preset(preset_name, seed)
     _worker_state.update(
         renderer=Renderer(p.layout(seed, light).scene, supersample=p.supersample), out=out, seed=seed, n_points=n_points
     )
@@ -225,7 +236,7 @@ def make_scene(
     """Write a synthetic repetitive scene with ground truth.
 
     Args:
-        preset: name in :data:`PRESETS`.
+        preset: name in :data:`PRESETS`, or "random" (the random scene drawn from ``seed``).
         out: output folder (created).
         res: "WxH" or (W, H); default: the preset's.
         seed: layout, camera and point-noise seed; the same arguments give the same bytes.
@@ -238,7 +249,7 @@ def make_scene(
     Returns:
         Path of the written transforms.json.
     """
-    p: Preset = get_preset(preset)
+    p: Preset = resolve_preset(preset, seed)
     out = Path(out)
     w, h = parse_res(res) or p.res
     n_train = p.n_train if n_train is None else int(n_train)
@@ -280,6 +291,11 @@ def make_scene(
         _, _, u, v = per_instance[inst.id][i]
         clicks.append({"file_path": names[i], "xy": [u, v], "class": inst.cls, "id": inst.id})
 
+    coverage = {
+        str(k): {"train_views": len(views), "train_pixels": int(sum(c[1] for c in views.values()))}
+        for k, views in sorted(per_instance.items())
+    }
+
     xyz = np.concatenate([results[i][1][0] for i in range(n_train)])
     rgb = np.concatenate([results[i][1][1] for i in range(n_train)])
     xyz, rgb = _thin(xyz, rgb, _POINT_VOXEL)
@@ -316,7 +332,7 @@ def make_scene(
             "generator_version": GENERATOR_VERSION,
             "preset": p.name,
             "seed": seed,
-            "effects": asdict(p.effects),
+            "effects": asdict(p.effects_lit(light)),
             "light": light,
             "resolution": [w, h],
             "n_train": n_train,
@@ -325,6 +341,8 @@ def make_scene(
             "world_up": [0.0, 0.0, 1.0],
             "n_points": int(xyz.shape[0]),
             "mean_test_to_train_distance": mean_dist,
+            "instance_coverage": coverage,
+            **({"scene": p.details} if p.details else {}),
         },
     }
     transforms = out / "transforms.json"

@@ -15,7 +15,10 @@ import math
 import numpy as np
 import open3d as o3d
 
-Mesh = o3d.geometry.TriangleMesh
+from splatreplace_ns.sim.household import HOUSEHOLD_BUILDERS, HOUSEHOLD_SYMMETRY
+from splatreplace_ns.sim.primitives import Mesh, arc, box, merge, pose, revolve, rotation_y, rotation_z
+
+__all__ = ["CLASSES", "CLASS_SYMMETRY", "box", "class_mesh", "class_signed_distance", "pose", "rotation_z", "symmetry_angles"]
 
 # Symmetry of each class, appearance included (textures respect the same symmetry):
 # "none" | "rot_z:N" (N-fold about the local z axis) | "rot_z:inf" (body of revolution).
@@ -28,94 +31,8 @@ CLASS_SYMMETRY: dict[str, str] = {
     "bishop": "rot_z:inf",
     "knight": "none",
     "crate": "none",
+    **HOUSEHOLD_SYMMETRY,
 }
-
-_LATHE_SEGMENTS = 48  # multiple of 4 so that the rook's 4-fold symmetry is exact
-
-
-# ----------------------------------------------------------------------------- primitives
-
-
-def box(size: tuple[float, float, float], center: tuple[float, float, float]) -> Mesh:
-    """Axis-aligned box.
-
-    Args:
-        size: (sx, sy, sz) edge lengths.
-        center: (x, y, z) centre.
-    Returns:
-        TriangleMesh with 8 vertices, 12 triangles.
-    """
-    m = o3d.geometry.TriangleMesh.create_box(*size)
-    m.translate(np.asarray(center, dtype=np.float64) - 0.5 * np.asarray(size, dtype=np.float64))
-    return m
-
-
-def merge(parts: list[Mesh]) -> Mesh:
-    """Concatenate meshes into one (no vertex welding)."""
-    out = o3d.geometry.TriangleMesh()
-    for p in parts:
-        out += p
-    return out
-
-
-def rotation_z(angle: float) -> np.ndarray:
-    """(3, 3) rotation about +z by ``angle`` radians."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rotation_y(angle: float) -> np.ndarray:
-    """(3, 3) rotation about +y by ``angle`` radians."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def pose(yaw: float = 0.0, translation: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """(4, 4) rigid transform: rotation ``yaw`` about z, then translation."""
-    t = np.eye(4)
-    t[:3, :3] = rotation_z(yaw)
-    t[:3, 3] = translation
-    return t
-
-
-def revolve(profile: np.ndarray, segments: int = _LATHE_SEGMENTS, flutes: int = 0, flute_depth: float = 0.0) -> Mesh:
-    """Surface of revolution about the z axis (a lathe).
-
-    Args:
-        profile: (K, 2) polyline of (r, z), bottom to top; start and end on the axis (r = 0) for a closed solid.
-        segments: number of angular samples.
-        flutes: if > 0, the radius is modulated by ``1 - flute_depth * max(cos(flutes * theta), 0) ** 2``
-            (vertical grooves, as on a fluted column).
-        flute_depth: relative depth of the grooves.
-    Returns:
-        TriangleMesh with K * segments vertices and 2 * (K - 1) * segments triangles.
-    """
-    profile = np.asarray(profile, dtype=np.float64)
-    k = profile.shape[0]
-    theta = 2.0 * np.pi * np.arange(segments) / segments  # (S,)
-    mod = np.ones(segments)
-    if flutes > 0:
-        mod = 1.0 - flute_depth * np.maximum(np.cos(flutes * theta), 0.0) ** 2
-    r = profile[:, :1] * mod[None, :]  # (K, S)
-    verts = np.stack(
-        [r * np.cos(theta)[None], r * np.sin(theta)[None], np.repeat(profile[:, 1:2], segments, axis=1)], axis=-1
-    ).reshape(-1, 3)
-    i = np.arange(k - 1)[:, None]
-    j = np.arange(segments)[None, :]
-    a = i * segments + j
-    b = i * segments + (j + 1) % segments
-    c = (i + 1) * segments + (j + 1) % segments
-    d = (i + 1) * segments + j
-    tris = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)], axis=0)
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris.astype(np.int32)))
-    return m
-
-
-def _arc(r0: float, z0: float, radius: float, a0: float, a1: float, n: int = 10) -> list[tuple[float, float]]:
-    """Points (r, z) on a circular arc in the profile plane, angles in degrees (0 = +r, 90 = +z)."""
-    a = np.radians(np.linspace(a0, a1, n))
-    return [(max(r0 + radius * math.cos(t), 0.0), z0 + radius * math.sin(t)) for t in a]
-
 
 # ----------------------------------------------------------------------------- classes
 
@@ -152,7 +69,7 @@ def _table() -> Mesh:
 def _pillar() -> Mesh:
     """Doric-like column, 3.0 m: square plinth, torus base, fluted shaft with entasis, echinus and abacus."""
     parts = [box((0.74, 0.74, 0.16), (0.0, 0.0, 0.08))]
-    base = [(0.0, 0.16)] + _arc(0.3, 0.22, 0.06, -90, 90, 8) + [(0.0, 0.28)]
+    base = [(0.0, 0.16)] + arc(0.3, 0.22, 0.06, -90, 90, 8) + [(0.0, 0.28)]
     parts.append(revolve(np.array(base)))
     zs = np.linspace(0.28, 2.58, 12)
     shaft = [(0.0, 0.28)] + [(0.27 - 0.045 * ((z - 0.28) / 2.3) ** 1.5, z) for z in zs] + [(0.0, 2.58)]
@@ -167,7 +84,7 @@ def _pawn() -> Mesh:
     """Pawn (0.5 m): base, collar, tapered body, neck ring and a ball head. Body of revolution."""
     prof = [(0.0, 0.0), (0.15, 0.0), (0.15, 0.04), (0.13, 0.06), (0.12, 0.09), (0.09, 0.12), (0.075, 0.15)]
     prof += [(0.06, 0.24), (0.05, 0.3), (0.09, 0.31), (0.09, 0.33), (0.05, 0.34)]
-    prof += _arc(0.0, 0.41, 0.085, -55, 90, 12)
+    prof += arc(0.0, 0.41, 0.085, -55, 90, 12)
     return revolve(np.array(prof))
 
 
@@ -188,7 +105,7 @@ def _bishop() -> Mesh:
     prof = [(0.0, 0.0), (0.16, 0.0), (0.16, 0.04), (0.13, 0.07), (0.1, 0.1), (0.075, 0.14), (0.055, 0.38)]
     prof += [(0.1, 0.4), (0.1, 0.43), (0.055, 0.45)]
     prof += [(0.075, 0.48), (0.095, 0.53), (0.1, 0.58), (0.085, 0.64), (0.05, 0.68), (0.02, 0.7)]
-    prof += _arc(0.0, 0.73, 0.035, -60, 90, 8)
+    prof += arc(0.0, 0.73, 0.035, -60, 90, 8)
     return revolve(np.array(prof))
 
 
@@ -235,6 +152,7 @@ _BUILDERS = {
     "bishop": _bishop,
     "knight": _knight,
     "crate": _crate,
+    **HOUSEHOLD_BUILDERS,
 }
 CLASSES: tuple[str, ...] = tuple(_BUILDERS)
 

@@ -10,7 +10,7 @@ import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -33,6 +33,10 @@ class Effects:
     """Copies receive different light: local coloured lights and a shadowing canopy."""
     shadows: bool = False
     """Cast shadows with secondary rays toward every light."""
+    slanted_sun: bool = False
+    """The sun is slanted (not overhead), so one face of upright copies turned differently is lit differently."""
+    per_copy_appearance: bool = False
+    """Copies of a class differ slightly in colour (the paper's per-instance SH offsets exist for this)."""
 
     def enabled(self) -> list[str]:
         """Names of the effects that are on."""
@@ -45,6 +49,8 @@ EFFECT_HELP: dict[str, str] = {
     "far_test_views": "test path far from the training path",
     "varied_lighting": "copies lit differently (coloured local lights, canopy)",
     "shadows": "shadow rays toward every light",
+    "slanted_sun": "the sun is slanted: copies turned differently show a face differently lit",
+    "per_copy_appearance": "copies of a class differ slightly in colour",
 }
 
 
@@ -91,6 +97,8 @@ class Preset:
     n_test: int = 50
     fov_deg: float = 65.0
     supersample: int = 2  # RGB rays per pixel = supersample²
+    details: Optional[dict] = None
+    """What a drawn scene is made of (a random scene's recipe), written into transforms.json as ``sim.scene``."""
     open_sky: bool = False
     """Outdoors: where a ray hits nothing it sees the sky, and transforms.json says ``"depth_zero": "far"`` so
     that the base stage puts the sky far away rather than just behind the scene. Indoor presets leave depth 0
@@ -106,6 +114,10 @@ class Preset:
         if light == "overhead":
             layout = dataclasses.replace(layout, scene=overhead_lighting(layout.scene))
         return layout
+
+    def effects_lit(self, light: str = "preset") -> Effects:
+        """The effects the scene shows when lit as ``light`` says: lit from overhead, its sun is not slanted."""
+        return dataclasses.replace(self.effects, slanted_sun=False) if light == "overhead" else self.effects
 
     def contents(self) -> dict[str, int]:
         """{class: count} of the repeated objects."""
@@ -309,32 +321,32 @@ PRESETS: dict[str, Preset] = {
         Preset(
             "office",
             "3 tables and 9 chairs in a room; chairs tucked under tables, low training path along one side.",
-            Effects(occlusion=True, coverage_imbalance=True),
+            Effects(occlusion=True, coverage_imbalance=True, slanted_sun=True),
             _office,
         ),
         Preset(
             "temple",
             "a colonnade of 9 columns under an entablature; trained from the front, tested from far behind.",
-            Effects(coverage_imbalance=True, far_test_views=True),
+            Effects(coverage_imbalance=True, far_test_views=True, slanted_sun=True),
             _temple,
             open_sky=True,
         ),
         Preset(
             "chess",
             "8 pawns (rot_z:inf), 2 rooks (rot_z:4), 2 knights, 2 bishops (rot_z:inf) on a board.",
-            Effects(),
+            Effects(slanted_sun=True),
             _chess,
         ),
         Preset(
             "lighting",
             "6 identical chairs under a low sun, a warm and a cool lamp and a canopy, with cast shadows.",
-            Effects(varied_lighting=True, shadows=True),
+            Effects(varied_lighting=True, shadows=True, slanted_sun=True),
             _lighting,
         ),
         Preset(
             "tiny",
             "3 crates, 64x48, 8 train + 4 test views: generated in about a second, for tests.",
-            Effects(coverage_imbalance=True),
+            Effects(coverage_imbalance=True, slanted_sun=True),
             _tiny,
             res=(64, 48),
             n_train=8,

@@ -9,6 +9,7 @@ centre, so they are exact for that ray.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import open3d as o3d
@@ -64,17 +65,27 @@ class Renderer:
         materials: list[str] = []
         instance_ids: list[int] = []
         w2l: list[np.ndarray] = []
+        colours: list[Optional[np.ndarray]] = []
         for surface in scene.surfaces:
             self._add(surface.mesh)
             materials.append(surface.material)
             instance_ids.append(0)
             w2l.append(np.eye(4))
+            colours.append(surface.colour)
         for inst in scene.instances:
             self._add(inst.world_mesh())
             materials.append(inst.cls)
             instance_ids.append(inst.id)
             w2l.append(np.linalg.inv(inst.pose))
+            colours.append(inst.colour)
         self._materials = materials
+        self._colours = [None if c is None else np.asarray(c, dtype=np.float32).reshape(3, 3) for c in colours]
+        self._shadow_rc = self._rc  # what shadow rays can hit: everything, unless some surfaces cast no shadows
+        if scene.shadows and not all(surface.casts_shadows for surface in scene.surfaces):
+            self._shadow_rc = o3d.t.geometry.RaycastingScene()
+            casters = [s.mesh for s in scene.surfaces if s.casts_shadows] + [i.world_mesh() for i in scene.instances]
+            for mesh in casters:
+                self._shadow_rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         self._instance_of = np.asarray(instance_ids, dtype=np.uint16)
         self._w2l = np.stack(w2l).astype(np.float64)
 
@@ -111,9 +122,15 @@ class Renderer:
         t = np.where(miss, np.inf, t).astype(np.float32)
         return Hits(t=t, geometry=gid, normal=res["primitive_normals"].numpy())
 
+    def instance_ids(self, hits: Hits) -> np.ndarray:
+        """(N,) uint16 instance id of each ray's closest hit; 0 for the environment and for misses."""
+        ids = np.zeros(hits.geometry.shape, dtype=np.uint16)
+        ids[hits.hit] = self._instance_of[hits.geometry[hits.hit]]
+        return ids
+
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, t_far: float) -> np.ndarray:
-        """(N,) bool: whether anything lies on each ray for t in (0, t_far)."""
-        return self._rc.test_occlusions(self._rays(origins, dirs), tnear=0.0, tfar=t_far).numpy().astype(bool)
+        """(N,) bool: whether anything that casts shadows lies on each ray for t in (0, t_far)."""
+        return self._shadow_rc.test_occlusions(self._rays(origins, dirs), tnear=0.0, tfar=t_far).numpy().astype(bool)
 
     # ------------------------------------------------------------------ shading
 
@@ -136,7 +153,10 @@ class Renderer:
             idx = order[s:e]
             m = self._w2l[g].astype(np.float32)
             local = points[idx] @ m[:3, :3].T + m[:3, 3]
-            out[idx] = albedo(self._materials[g], local)
+            colour = albedo(self._materials[g], local)
+            if self._colours[g] is not None:
+                colour = np.clip(colour @ self._colours[g].T, 0.0, 1.0)
+            out[idx] = colour
         return out
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -209,8 +229,7 @@ class Renderer:
         dc = pixel_rays(cam, np.array([[0.5, 0.5]]))[1].reshape(-1, 3)
         centre = self.trace(eye, dc)
         hit = centre.hit
-        ids = np.zeros(h * w, dtype=np.uint16)
-        ids[hit] = self._instance_of[centre.geometry[hit]]
+        ids = self.instance_ids(centre)
         depth = np.where(hit, centre.t, 0.0).astype(np.float32)
         points = np.where(hit[:, None], eye + centre.t[:, None].astype(np.float64) * dc, np.nan).astype(np.float32)
         return Frame(

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Optional
 
 import numpy as np
 import open3d as o3d
@@ -23,6 +23,9 @@ class Instance:
     id: int  # > 0, the value written in the instance masks
     cls: str
     pose: np.ndarray  # (4, 4) object→world, rigid
+    colour: Optional[np.ndarray] = None
+    """(3, 3) linear map applied to the class material's albedo (``albedo @ colour.T``); None = as the material is.
+    Copies of a class share it unless the scene declares per-copy appearance."""
 
     @property
     def symmetry(self) -> str:
@@ -39,6 +42,11 @@ class Surface:
 
     mesh: o3d.geometry.TriangleMesh  # world frame
     material: str
+    colour: Optional[np.ndarray] = None
+    """(3, 3) linear map applied to the material's albedo; None = as the material is."""
+    casts_shadows: bool = True
+    """False for a room's enclosing walls: their shadow would cover the room under a slanted sun (a room with no
+    roof), which no scene asks for."""
 
 
 @dataclass(frozen=True)
