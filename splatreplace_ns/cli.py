@@ -21,6 +21,7 @@ from splatreplace_ns.bench.segment import BenchSegmentConfig
 from splatreplace_ns.bench.template import BenchTemplateConfig
 from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig
 from splatreplace_ns.bench.sim import BenchSimConfig
+from splatreplace_ns.bench.suite import BenchSuiteConfig
 from splatreplace_ns.demo import DemoCommand
 from splatreplace_ns.export import ExportCommand
 from splatreplace_ns.masks.command import MasksCommand
@@ -34,6 +35,7 @@ BenchCommands = Union[
     Annotated[BenchRegisterConfig, tyro.conf.subcommand("register")],
     Annotated[BenchMasksConfig, tyro.conf.subcommand("masks")],
     Annotated[BenchTradeoffConfig, tyro.conf.subcommand("tradeoff")],
+    Annotated[BenchSuiteConfig, tyro.conf.subcommand("suite")],
 ]
 
 

@@ -262,3 +262,27 @@ def test_scores_against_a_reference_scene(segmented, tmp_path):
     (swapped / "clicks.json").write_text(json.dumps(clicks))
     wrong = score_views_from_clicks(pipeline, data / "clicks.json", reference_scene=swapped)
     assert wrong["miou"] < 0.5 * own["miou"], (wrong["miou"], own["miou"])
+
+
+def test_when_no_click_selects_an_instance_the_scene_is_left_as_it_was(tmp_path):
+    """Every click of clicks.json on the background: the run does not stop; nothing is segmented, registered or
+    replaced, and the fine-tuning steps train the scene as it was."""
+    import cv2
+
+    data = tmp_path / "tiny"
+    make_scene("tiny", data, n_train=8, n_test=2)
+    meta = json.loads((data / "transforms.json").read_text())
+    mask_of = {f["file_path"]: f["instance_mask_path"] for f in meta["frames"]}
+    clicks = json.loads((data / "clicks.json").read_text())
+    for click in clicks:
+        mask = cv2.imread(str(data / mask_of[click["file_path"]]), cv2.IMREAD_UNCHANGED)
+        rows, cols = (mask == 0).nonzero()
+        click["xy"] = [int(cols[0]), int(rows[0])]
+    (data / "clicks.json").write_text(json.dumps(clicks))
+    config = make_trainer_config(data, tmp_path / "runs", 60, contrastive_iterations=30, finetune_iterations=30)
+    trainer = run_training(config)
+    pipeline = trainer.pipeline
+    assert len(pipeline.segmentation_report["skipped_clicks"]) == len(clicks)
+    assert pipeline.model.instances == [] and not pipeline.model.has_templates
+    assert pipeline.registration_report["skipped"] == "no instance was selected"
+    assert int(pipeline.model.instance_labels.sum()) == 0 and pipeline.segmentation_report["carved"] == 0

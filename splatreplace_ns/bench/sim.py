@@ -1,9 +1,11 @@
-"""Wall time of the synthetic-scene generator (``splatreplace sim``) per preset.
+"""Wall time of the synthetic-scene generator (``splatreplace sim``) per preset and per random scene.
 
 Prints a table and writes JSON with the machine, versions, parameters, wall and CPU time and what was
-produced. The target for ``office`` at 320x240 with 200 + 50 views is two minutes on two cores.
+produced. Targets on two cores: ``office`` at 320x240 with 200 + 50 views in two minutes; a random scene at
+128x96 with 48 + 8 views in one minute.
 
     python benchmarks/bench_sim.py --presets office --json benchmarks/results/sim.json
+    splatreplace bench sim --presets --seeds 0 1 2 3 4 5 6 7 --res 128x96 --n-train 48 --n-test 8
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ class BenchSimConfig:
 
     presets: list[str] = field(default_factory=lambda: ["office"])
     """Presets to generate."""
+    seeds: list[int] = field(default_factory=list)
+    """Random scenes to generate (``splatreplace sim random --seed K``), after the presets."""
     res: Optional[str] = None
     """Image size WxH; None: each preset's."""
     n_train: Optional[int] = None
@@ -56,18 +60,19 @@ class BenchSimConfig:
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
             root = self.keep or Path(tmp)
-            for name in self.presets:
+            jobs = [(name, 0, name) for name in self.presets] + [("random", k, f"random:{k}") for k in self.seeds]
+            for name, seed, label in jobs:
                 load = os.getloadavg()[0]
                 cpu0, t0 = _cpu_seconds(), time.perf_counter()
-                path = make_scene(
-                    name, root / name, res=self.res, n_train=self.n_train, n_test=self.n_test, workers=self.workers
-                )
+                path = make_scene(name, root / label.replace(":", "_"), res=self.res, n_train=self.n_train,
+                                  n_test=self.n_test, workers=self.workers, seed=seed)
                 wall, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
                 sim = json.loads(path.read_text())["sim"]
                 n_views = sim["n_train"] + sim["n_test"]
                 rows.append(
                     {
-                        "preset": name,
+                        "preset": label,
+                        "instances": len(json.loads(path.read_text())["instances"]),
                         "resolution": "x".join(map(str, sim["resolution"])),
                         "n_train": sim["n_train"],
                         "n_test": sim["n_test"],
@@ -79,7 +84,8 @@ class BenchSimConfig:
                         "load_average_before": round(load, 2),
                     }
                 )
-        header = ["preset", "resolution", "n_train", "n_test", "wall_s", "cpu_s", "ms_per_view", "mean_test_to_train_m"]
+        header = ["preset", "resolution", "n_train", "n_test", "instances", "wall_s", "cpu_s", "ms_per_view",
+                  "mean_test_to_train_m"]
         print(" | ".join(f"{h:>12}" for h in header))
         for r in rows:
             print(" | ".join(f"{str(r[h]):>12}" for h in header))
@@ -94,6 +100,8 @@ class BenchSimConfig:
             "versions": {"open3d": o3d.__version__, "numpy": np.__version__, "opencv": cv2.__version__},
             "parameters": {"res": self.res, "n_train": self.n_train, "n_test": self.n_test, "workers": self.workers},
             "results": rows,
+            "summary": {"wall_s_max": max((r["wall_s"] for r in rows), default=None),
+                        "wall_s_mean": (sum(r["wall_s"] for r in rows) / len(rows)) if rows else None},
         }
         if self.json is not None:
             self.json.parent.mkdir(parents=True, exist_ok=True)

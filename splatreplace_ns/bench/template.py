@@ -117,11 +117,11 @@ def gain_by_baseline_quality(baseline: List[Dict], ours: List[Dict], key: str = 
     return {"key": key, "worst_half": summary(pairs[:half]), "rest": summary(pairs[half:])}
 
 
-def _run(config, before_train=None) -> Tuple[object, float]:
+def _run(config, before_train=None, after_step=None) -> Tuple[object, float]:
     from splatreplace_ns.method.train import run_training
 
     start = time.perf_counter()
-    trainer = run_training(config, before_train=before_train)
+    trainer = run_training(config, after_step=after_step, before_train=before_train)
     return trainer, time.perf_counter() - start
 
 
@@ -152,7 +152,7 @@ def _wait_for(process, queue) -> Dict:
 
 
 def train_ours_and_baseline(
-    data: Path, out: Path, B: int, C: int, F: int, resumable: bool = False, parallel: bool = False
+    data: Path, out: Path, B: int, C: int, F: int, resumable: bool = False, parallel: bool = False, after_step=None
 ) -> Dict:
     """Trains the whole method and the 3DGS* baseline with the same total iterations and scores both.
 
@@ -164,6 +164,7 @@ def train_ours_and_baseline(
             the cores split between the two (on two cores one torch thread scales to about 1.2x from two, so
             two runs side by side finish much sooner than one after the other). Its log goes to
             ``out/baseline.log``.
+        after_step: ``after_step(trainer, step)`` after every step of ours (see ``method.train.run_training``).
     Returns:
         {"ours", "baseline": metrics, "ours_trainer", "baseline_pipeline", "ours_config", "times", "sizes",
          "registration"}.
@@ -190,7 +191,7 @@ def train_ours_and_baseline(
         ours_cfg = make_trainer_config(data, out, B, C, F, experiment_name="ours",
                                        steps_per_save=B + C - 1 if resumable else None, progress=True)
         ours_cfg.save_only_latest_checkpoint = not resumable
-        ours_trainer, times["ours"] = _run(ours_cfg)
+        ours_trainer, times["ours"] = _run(ours_cfg, after_step=after_step)
     except BaseException:
         if worker is not None:
             worker.terminate()

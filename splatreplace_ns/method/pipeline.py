@@ -139,8 +139,11 @@ class SplatReplacePipeline(VanillaPipeline):
         if stage in ("finetune", "segmented"):  # the replaced scene (or the segmented one) against the images
             if self.model.stage == "segmented" and self.config.finetune_iterations > 0 and not self.registration_report:
                 # first fine-tuning step (also after resuming from a checkpoint saved at the end of segmentation)
-                self.run_registration()
-                self.build_shared_templates(start_step=step)
+                if self.model.instances:
+                    self.run_registration()
+                    self.build_shared_templates(start_step=step)
+                else:
+                    self.registration_report = {"time_s": 0.0, "failures": [], "skipped": "no instance was selected"}
             return super().get_train_loss_dict(step)
         if self.model.stage == "base":
             CONSOLE.log(f"[bold]step {step}: base stage done ({self.model.num_points} Gaussians); training contrastive features")
@@ -442,10 +445,17 @@ class SplatReplacePipeline(VanillaPipeline):
     @torch.no_grad()
     def finish_segmentation(self) -> Dict:
         assert self.selection is not None
-        if not self.selection.instances:
-            raise SelectionError("no instances were selected; give at least one click")
         cfg = self.config.segmentation
         model = self.model
+        if not self.selection.instances:  # every click was refused: nothing to replace, the scene stays as it is
+            model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
+            model.instances = []
+            model.stage = "segmented"
+            self.segmentation_report = {"instances": [], "mask_coverage": {}, "carved": 0, "gaussians": model.num_points,
+                                        "instance_gaussians": 0}
+            CONSOLE.log("[bold yellow]segmentation: no instance was selected, so nothing is replaced: the scene is "
+                        "left as it was and trained on as the base model")
+            return self.segmentation_report
         queries = self.selection.queries.to(self.device)
         labels = self.selection.labels().to(self.device)
 

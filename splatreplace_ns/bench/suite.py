@@ -1,0 +1,381 @@
+"""``splatreplace bench suite``: the whole method against the 3DGS* baseline on a split of random scenes.
+
+The yardstick the method is measured by (the named presets stay as regression scenes). Scenes come from
+``splatreplace sim random`` (:mod:`splatreplace_ns.sim.random_scenes`), in two splits:
+
+* ``dev``: seeds 0–99. Rules and thresholds are chosen on these.
+* ``report``: the fixed seeds :data:`REPORT_SEEDS`. Never used to choose anything; the README's headline figures
+  come from it.
+
+For every scene, ours (base → contrastive → segmentation → registration → shared templates → fine-tuning) and the
+baseline (3DGS*, the same total iterations) train side by side (one core each), and the row gives masked and full
+PSNR of both on the test views, the gain, masked SSIM, segmentation mIoU, registration errors and failures, and the
+time of every stage. The summary gives the mean gain, the worst scene's gain and the share of scenes where ours is
+worse; a plot shows the gain per scene, sorted.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import platform
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple
+
+import torch
+
+from splatreplace_ns.bench.output import write_result_json
+
+DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
+REPORT_SEEDS: Tuple[int, ...] = tuple(range(10000, 10008))
+QUICK = {"scenes": 4, "res": "96x72"}
+"""``--quick``: the first 4 dev scenes at 96x72 (same budget), for iterating."""
+WRONG_POSE_DEG = 5.0
+"""An accepted registration further than this from the truth (modulo the class's symmetry) counts as wrong."""
+
+
+@dataclass
+class BenchSuiteConfig:
+    """Ours vs the 3DGS* baseline on every scene of a split of random scenes: one row per scene and a summary."""
+
+    split: Literal["dev", "report"] = "dev"
+    """dev: seeds 0-99 (choose rules and thresholds here); report: seeds 10000-10007 (only report them)."""
+    scenes: Optional[int] = None
+    """Run the first N scenes of the split (default: 8, the whole report split)."""
+    seeds: Optional[Tuple[int, ...]] = None
+    """Run these seeds of the split instead (each must belong to it)."""
+    quick: bool = False
+    """The first 4 dev scenes at 96x72 (overrides --scenes and --res)."""
+    res: str = "128x96"
+    """Image size WxH of the generated scenes."""
+    n_train: int = 48
+    """Training views per scene."""
+    n_test: int = 8
+    """Test views per scene."""
+    base_iterations: int = 1500
+    """Base 3DGS* iterations of ours (the demo's budget; the baseline gets base + contrastive + finetune)."""
+    contrastive_iterations: int = 500
+    """Contrastive-feature iterations of ours."""
+    finetune_iterations: int = 1000
+    """Shared-template fine-tuning iterations of ours."""
+    json: Optional[Path] = None
+    """Where to write the results as JSON (and the plot beside it as PNG)."""
+    plot: Optional[Path] = None
+    """Gain-per-scene plot (default: beside --json, else benchmarks/results/suite_<split>.png)."""
+    data_root: Path = Path("benchmarks/data/suite")
+    """Generated scenes are kept here and reused."""
+    out_dir: Path = Path("benchmarks/runs/suite")
+    """Training outputs, one folder per scene and configuration (with that scene's result.json)."""
+    resume: bool = False
+    """Reuse a scene's result.json from an earlier run of the same configuration instead of training it again."""
+    sequential: bool = False
+    """Train the baseline after ours instead of beside it (beside: each on half of the CPU cores)."""
+
+    def main(self) -> Dict:
+        result = run_suite(self)
+        print_suite(result)
+        write_result_json(result, self.json)
+        plot = self.plot or (self.json.with_suffix(".png") if self.json else Path(f"benchmarks/results/suite_{self.split}.png"))
+        write_gain_plot(result, plot)
+        print(f"wrote {plot}")
+        return result
+
+
+def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
+    """The seeds a configuration runs, checked against its split."""
+    pool = DEV_SEEDS if cfg.split == "dev" else REPORT_SEEDS
+    if cfg.quick:
+        if cfg.split != "dev":
+            raise ValueError("--quick is a subset of the dev split; the report split always runs whole")
+        return list(pool[: QUICK["scenes"]])
+    if cfg.seeds:
+        foreign = [s for s in cfg.seeds if s not in pool]
+        if foreign:
+            raise ValueError(f"seeds {foreign} are not in the {cfg.split} split ({pool[0]}-{pool[-1]})")
+        return list(cfg.seeds)
+    count = 8 if cfg.scenes is None else cfg.scenes
+    if not 1 <= count <= len(pool):
+        raise ValueError(f"--scenes must be between 1 and {len(pool)} for the {cfg.split} split, got {count}")
+    return list(pool[:count])
+
+
+def scene_name(seed: int, res: str, n_train: int, n_test: int) -> str:
+    """Folder name of a generated suite scene, e.g. ``random_7_128x96_48v8``."""
+    return f"random_{seed}_{res}_{n_train}v{n_test}"
+
+
+def cached_random_scene(seed: int, res: str, n_train: int, n_test: int, root: Path) -> Path:
+    """``root/<scene_name>``, generated when absent or written by an older generator."""
+    from splatreplace_ns.sim import is_current_scene, make_scene
+
+    data = Path(root) / scene_name(seed, res, n_train, n_test)
+    if not is_current_scene(data):
+        make_scene("random", data, res=res, seed=seed, n_train=n_train, n_test=n_test)
+    return data
+
+
+class StageClock:
+    """``after_step`` callback that notes the wall time after ours' first step, at the end of its base and
+    contrastive stages (the contrastive stage's last step also runs segmentation; registration runs at the first
+    fine-tuning step) and after its last step. ``at_segmentation(trainer)``, when given, runs right after the
+    segmentation, before registration changes anything (the suite scores the segmentation there)."""
+
+    def __init__(self, base: int, contrastive: int, finetune: int, at_segmentation=None) -> None:
+        self.marks = {0: "first", base - 1: "base_end", base + contrastive - 1: "contrastive_end",
+                      base + contrastive + finetune - 1: "last"}
+        self.times: Dict[str, float] = {}
+        self.at_segmentation = at_segmentation
+
+    def __call__(self, trainer, step: int) -> None:
+        if step in self.marks:
+            if self.marks[step] == "contrastive_end" and self.at_segmentation is not None:
+                start = time.perf_counter()
+                self.at_segmentation(trainer)
+                self.times["scoring"] = time.perf_counter() - start  # not the method's time: taken out below
+            self.times[self.marks[step]] = time.perf_counter() - self.times.get("scoring", 0.0)
+
+    def stages(self, total: float, segmentation: float, registration: float) -> Dict[str, float]:
+        """Seconds per stage of ours; ``setup_and_eval`` is the rest of the run's ``total`` (loading the data,
+        evaluating the test views)."""
+        t = {k: self.times.get(k, float("nan")) for k in ("first", "base_end", "contrastive_end", "last")}
+        stages = {"base": t["base_end"] - t["first"],
+                  "contrastive": t["contrastive_end"] - t["base_end"] - segmentation,
+                  "segmentation": segmentation, "registration": registration,
+                  "finetune": t["last"] - t["contrastive_end"] - registration}
+        stages["setup_and_eval"] = total - (t["last"] - t["first"]) - self.times.get("scoring", 0.0)
+        return stages
+
+
+def _registration_summary(report: Optional[Dict], model_registration: Dict) -> Dict:
+    """Mean and max rotation error of the accepted registrations, failures (not accepted) and wrong ones
+    (accepted but more than WRONG_POSE_DEG off)."""
+    failures = sorted(int(k) for k, v in model_registration.items() if not v["success"])
+    if not report:
+        return {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": failures, "wrong": [],
+                "per_instance": []}
+    rows = [r for r in report["per_instance"] if r["success"]]
+    errors = [r["rotation_error_deg"] for r in rows if r["rotation_error_deg"] is not None]
+    return {
+        "rotation_error_deg_mean": statistics.fmean(errors) if errors else None,
+        "rotation_error_deg_max": max(errors) if errors else None,
+        "failures": failures,
+        "wrong": [r["gt_id"] for r in rows if r["rotation_error_deg"] is not None and r["rotation_error_deg"] > WRONG_POSE_DEG],
+        "per_instance": report["per_instance"],
+    }
+
+
+def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
+    """Generate (or reuse) one scene, train ours and the baseline, and score both."""
+    from splatreplace_ns.bench.template import test_metrics, train_ours_and_baseline
+    from splatreplace_ns.eval.report import registration_report, segmentation_report
+
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    start = time.perf_counter()
+    data = cached_random_scene(seed, res, cfg.n_train, cfg.n_test, cfg.data_root)
+    sim_s = time.perf_counter() - start
+    meta = json.loads((data / "transforms.json").read_text())
+    segmentation: Dict = {}
+
+    def score_segmentation(trainer) -> None:  # the selected instances' masks in the test views, before replacement
+        report, why_not = segmentation_report(trainer.pipeline)
+        segmentation.update(report or {"unavailable": why_not})
+
+    clock = StageClock(B, C, F, at_segmentation=score_segmentation)
+    pair = train_ours_and_baseline(data, cfg.out_dir / f"{data.name}_{B}-{C}-{F}", B, C, F,
+                                   parallel=not cfg.sequential, after_step=clock)
+    pipeline = pair["ours_trainer"].pipeline
+    registration, _ = registration_report(pipeline)
+    times = pair["times"]
+    ours, baseline = pair["ours"], pair["baseline"]
+    per_instance = {}
+    for key, value in (ours.get("psnr_per_instance") or {}).items():
+        base_value = (baseline.get("psnr_per_instance") or {}).get(key)
+        if key != "0" and base_value is not None:
+            per_instance[key] = {"baseline": base_value, "ours": value, "gain": value - base_value}
+    row = {
+        "seed": seed,
+        "scene": meta["sim"]["scene"],
+        "effects": [k for k, v in meta["sim"]["effects"].items() if v],
+        "instances": len(meta["instances"]),
+        "baseline": {k: baseline.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
+        "ours": {k: ours.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
+        "gain_masked": _diff(ours.get("psnr_masked"), baseline.get("psnr_masked")),
+        "gain_full": _diff(ours.get("psnr"), baseline.get("psnr")),
+        "per_instance": per_instance,
+        "segmentation_miou": segmentation.get("miou"),
+        "segmentation_unavailable": segmentation.get("unavailable"),
+        "registration": _registration_summary(registration, pipeline.model.registration),
+        "replaced": pipeline.model.has_templates,
+        "time_s": {"sim": sim_s,
+                   **clock.stages(times["ours"], times.get("segmentation", 0.0), times.get("registration", 0.0)),
+                   "ours": times["ours"], "baseline": times["baseline"], "total": time.perf_counter() - start},
+        "baseline_beside_ours": pair["parallel"],
+    }
+    del pair, pipeline
+    gc.collect()
+    return row
+
+
+def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
+    return None if a is None or b is None else a - b
+
+
+def summarise(rows: List[Dict]) -> Dict:
+    """Mean gain, worst scene's gain, share of scenes where ours is worse (masked PSNR), and the same for full
+    images; instances that lost more than 1 dB; wrong or failed registrations."""
+    masked = [r["gain_masked"] for r in rows if r["gain_masked"] is not None]
+    full = [r["gain_full"] for r in rows if r["gain_full"] is not None]
+    losses = [{"seed": r["seed"], "instance": int(k), "gain": v["gain"]}
+              for r in rows for k, v in r["per_instance"].items() if v["gain"] < -1.0]
+    return {
+        "scenes": len(rows),
+        "gain_masked_mean": statistics.fmean(masked) if masked else None,
+        "gain_masked_worst": min(masked) if masked else None,
+        "share_worse_masked": sum(g < 0 for g in masked) / len(masked) if masked else None,
+        "gain_full_mean": statistics.fmean(full) if full else None,
+        "gain_full_worst": min(full) if full else None,
+        "share_worse_full": sum(g < 0 for g in full) / len(full) if full else None,
+        "instances_losing_over_1db": losses,
+        "wrong_registrations": sum(len(r["registration"]["wrong"]) for r in rows),
+        "failed_registrations": sum(len(r["registration"]["failures"]) for r in rows),
+        "segmentation_miou_mean": statistics.fmean(m) if (m := [r["segmentation_miou"] for r in rows
+                                                                if r["segmentation_miou"] is not None]) else None,
+    }
+
+
+def run_suite(cfg: BenchSuiteConfig) -> Dict:
+    from splatreplace_ns.eval.report import versions
+
+    seeds = split_seeds(cfg)
+    res = QUICK["res"] if cfg.quick else cfg.res
+    cores = os.cpu_count() or 1
+    torch.set_num_threads(max(1, cores if cfg.sequential else cores // 2))
+    t0 = time.perf_counter()
+    configuration = {"res": res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+                     "contrastive_iterations": cfg.contrastive_iterations,
+                     "finetune_iterations": cfg.finetune_iterations}
+    rows = []
+    for k, seed in enumerate(seeds):
+        B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+        saved = cfg.out_dir / f"{scene_name(seed, res, cfg.n_train, cfg.n_test)}_{B}-{C}-{F}" / "result.json"
+        if cfg.resume and saved.exists():
+            previous = json.loads(saved.read_text())
+            if previous.get("configuration") == configuration:
+                print(f"[suite] scene {k + 1}/{len(seeds)} (seed {seed}): reusing {saved}", flush=True)
+                rows.append(previous["row"])
+                continue
+        print(f"[suite] scene {k + 1}/{len(seeds)} (seed {seed}) ...", flush=True)
+        row = run_scene(seed, cfg, res)
+        write_result_json({"configuration": configuration, "row": row}, saved)
+        rows.append(row)
+        g = row["gain_masked"]
+        print(f"[suite] seed {seed}: masked gain {'n/a' if g is None else f'{g:+.2f} dB'} "
+              f"({row['time_s']['total']:.0f} s)", flush=True)
+    return {
+        "benchmark": "suite",
+        "split": cfg.split,
+        "seeds": seeds,
+        "quick": cfg.quick,
+        "parameters": {**configuration, "baseline_iterations": cfg.base_iterations + cfg.contrastive_iterations
+                       + cfg.finetune_iterations, "sequential": cfg.sequential},
+        "scenes": rows,
+        "summary": summarise(rows),
+        "time_s": time.perf_counter() - t0,
+        "machine": {"platform": platform.platform(), "cpu_count": cores, "cuda": torch.cuda.is_available()},
+        "versions": versions(),
+        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
+    }
+
+
+def _fmt(value: Optional[float], digits: int = 2, signed: bool = False) -> str:
+    if value is None:
+        return "n/a"
+    return f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
+
+
+def scene_label(row: Dict) -> str:
+    """Short description of a scene: its classes and counts."""
+    return ", ".join(f"{g['count']} {g['cls']}" for g in row["scene"]["groups"])
+
+
+def _console():
+    """A rich console, wide enough for the suite's table when the output is a file or a pipe."""
+    from rich.console import Console
+
+    console = Console()
+    return console if console.is_terminal else Console(width=200)
+
+
+def print_suite(result: Dict) -> None:
+    from rich.table import Table
+
+    console = _console()
+    table = Table(title=f"bench suite, {result['split']} split ({result['parameters']['res']}, "
+                        f"ours {result['parameters']['base_iterations']}+{result['parameters']['contrastive_iterations']}"
+                        f"+{result['parameters']['finetune_iterations']} vs 3DGS* "
+                        f"{result['parameters']['baseline_iterations']} iterations)")
+    columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "masked SSIM", "mIoU",
+               "rot. err. ° mean / max", "failed / wrong", "s: base / contr. / seg. / reg. / fine")
+    for col in columns:
+        table.add_column(col)
+    for r in result["scenes"]:
+        reg, t = r["registration"], r["time_s"]
+        gain = r["gain_masked"]
+        colour = "green" if gain is not None and gain >= 0 else "red"
+        table.add_row(
+            str(r["seed"]), scene_label(r),
+            f"{_fmt(r['baseline']['psnr_masked'])} → {_fmt(r['ours']['psnr_masked'])} "
+            f"[{colour}]({_fmt(gain, signed=True)})[/]",
+            f"{_fmt(r['baseline']['psnr'])} → {_fmt(r['ours']['psnr'])} ({_fmt(r['gain_full'], signed=True)})",
+            f"{_fmt(r['baseline']['ssim_masked'], 3)} → {_fmt(r['ours']['ssim_masked'], 3)}",
+            _fmt(r["segmentation_miou"], 3),
+            f"{_fmt(reg['rotation_error_deg_mean'], 1)} / {_fmt(reg['rotation_error_deg_max'], 1)}",
+            f"{len(reg['failures'])} / {len(reg['wrong'])}",
+            " / ".join(f"{t[k]:.0f}" for k in ("base", "contrastive", "segmentation", "registration", "finetune")),
+        )
+    console.print(table)
+    s = result["summary"]
+    console.print(
+        f"masked PSNR gain: mean {_fmt(s['gain_masked_mean'], signed=True)} dB, worst scene "
+        f"{_fmt(s['gain_masked_worst'], signed=True)} dB, ours worse on {_fmt(100 * (s['share_worse_masked'] or 0), 0)} % "
+        f"of {s['scenes']} scenes; full-image gain mean {_fmt(s['gain_full_mean'], signed=True)} dB, worst "
+        f"{_fmt(s['gain_full_worst'], signed=True)} dB; instances losing > 1 dB: {len(s['instances_losing_over_1db'])}; "
+        f"registrations failed {s['failed_registrations']}, wrong (> {WRONG_POSE_DEG:.0f}°) "
+        f"{s['wrong_registrations']}; {result['time_s'] / 60:.0f} min in all"
+    )
+
+
+def write_gain_plot(result: Dict, path: Path) -> None:
+    """Bar chart of the masked-PSNR gain per scene, sorted (red: ours worse), with the full-image gain as dots."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sorted((r for r in result["scenes"] if r["gain_masked"] is not None), key=lambda r: r["gain_masked"])
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(rows) + 2.0), 3.6), dpi=120)
+    x = list(range(len(rows)))
+    gains = [r["gain_masked"] for r in rows]
+    ax.bar(x, gains, color=["#c0392b" if g < 0 else "#27ae60" for g in gains], label="masked PSNR gain")
+    ax.plot(x, [r["gain_full"] if r["gain_full"] is not None else float("nan") for r in rows], "o", color="#34495e",
+            markersize=4, label="full-image PSNR gain")
+    ax.axhline(0.0, color="black", linewidth=0.8)
+    s = result["summary"]
+    if s["gain_masked_mean"] is not None:
+        ax.axhline(s["gain_masked_mean"], color="#2980b9", linestyle="--", linewidth=1,
+                   label=f"mean masked gain {s['gain_masked_mean']:+.2f} dB")
+    ax.set_xticks(x, [str(r["seed"]) for r in rows], rotation=90 if len(rows) > 16 else 0)
+    ax.set_xlabel("scene (seed), sorted by masked gain")
+    ax.set_ylabel("ours − 3DGS* (dB)")
+    ax.set_title(f"bench suite, {result['split']} split: ours worse on "
+                 f"{sum(g < 0 for g in gains)} of {len(gains)} scenes")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,122 @@
+"""``splatreplace bench suite``: splits, summary, stage times, plot, and one tiny run end to end."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from splatreplace_ns.bench import suite
+from splatreplace_ns.bench.suite import (
+    DEV_SEEDS,
+    REPORT_SEEDS,
+    BenchSuiteConfig,
+    StageClock,
+    split_seeds,
+    summarise,
+    write_gain_plot,
+)
+
+
+def test_splits_are_disjoint_and_fixed():
+    assert list(DEV_SEEDS) == list(range(100))
+    assert len(REPORT_SEEDS) == 8 and min(REPORT_SEEDS) >= 10000 and not set(DEV_SEEDS) & set(REPORT_SEEDS)
+    assert split_seeds(BenchSuiteConfig(split="report")) == list(REPORT_SEEDS)
+    assert split_seeds(BenchSuiteConfig(split="dev")) == list(range(8))
+    assert split_seeds(BenchSuiteConfig(split="dev", scenes=3)) == [0, 1, 2]
+    assert split_seeds(BenchSuiteConfig(quick=True)) == [0, 1, 2, 3]
+    assert split_seeds(BenchSuiteConfig(split="dev", seeds=(5, 17))) == [5, 17]
+    with pytest.raises(ValueError, match="not in the dev split"):
+        split_seeds(BenchSuiteConfig(split="dev", seeds=(10001,)))
+    with pytest.raises(ValueError, match="not in the report split"):
+        split_seeds(BenchSuiteConfig(split="report", seeds=(3,)))
+    with pytest.raises(ValueError, match="--quick"):
+        split_seeds(BenchSuiteConfig(split="report", quick=True))
+    with pytest.raises(ValueError, match="--scenes"):
+        split_seeds(BenchSuiteConfig(split="report", scenes=9))
+
+
+def _row(seed: int, masked: float, full: float, per_instance: dict, wrong=(), failures=()) -> dict:
+    return {"seed": seed, "gain_masked": masked, "gain_full": full, "per_instance": per_instance,
+            "segmentation_miou": 0.5, "registration": {"wrong": list(wrong), "failures": list(failures)}}
+
+
+def test_summary_mean_worst_and_share_worse():
+    rows = [
+        _row(0, 2.0, 1.0, {"1": {"gain": 3.0}, "2": {"gain": -1.5}}, wrong=[2]),
+        _row(1, -0.5, 0.25, {"1": {"gain": -0.4}}, failures=[4, 5]),
+        _row(2, 1.0, -0.25, {}),
+        _row(3, None, None, {}),  # a scene without masked pixels in its test views
+    ]
+    s = summarise(rows)
+    assert s["scenes"] == 4
+    assert s["gain_masked_mean"] == pytest.approx(2.5 / 3) and s["gain_masked_worst"] == -0.5
+    assert s["share_worse_masked"] == pytest.approx(1 / 3)
+    assert s["gain_full_mean"] == pytest.approx(1.0 / 3) and s["gain_full_worst"] == -0.25
+    assert s["share_worse_full"] == pytest.approx(1 / 3)
+    assert s["instances_losing_over_1db"] == [{"seed": 0, "instance": 2, "gain": -1.5}]
+    assert s["wrong_registrations"] == 1 and s["failed_registrations"] == 2
+
+
+def test_stage_clock_splits_the_run(monkeypatch):
+    now = iter([10.0, 40.0, 70.0, 100.0])
+    monkeypatch.setattr(suite.time, "perf_counter", lambda: next(now))
+    clock = StageClock(base=30, contrastive=10, finetune=20)
+    for step in range(60):
+        clock(None, step)  # marks after steps 0, 29, 39 and 59
+    stages = clock.stages(total=95.0, segmentation=5.0, registration=8.0)
+    assert stages == {"base": 30.0, "contrastive": 25.0, "segmentation": 5.0, "registration": 8.0,
+                      "finetune": 22.0, "setup_and_eval": 5.0}
+
+
+def test_stage_clock_scores_the_segmentation_outside_the_stage_times(monkeypatch):
+    now = iter([0.0, 10.0, 20.0, 26.0, 30.0, 40.0])  # the scoring at the end of the contrastive stage takes 6 s
+    monkeypatch.setattr(suite.time, "perf_counter", lambda: next(now))
+    scored = []
+    clock = StageClock(base=2, contrastive=2, finetune=2, at_segmentation=scored.append)
+    for step in range(6):
+        clock("trainer", step)
+    assert scored == ["trainer"]
+    assert clock.stages(total=46.0, segmentation=1.0, registration=2.0) == {
+        "base": 10.0, "contrastive": 13.0, "segmentation": 1.0, "registration": 2.0, "finetune": 8.0,
+        "setup_and_eval": 6.0}
+
+
+def test_gain_plot(tmp_path):
+    result = {"split": "dev", "scenes": [_row(0, 2.0, 1.0, {}), _row(1, -0.5, 0.2, {}), _row(2, 1.0, None, {})],
+              "summary": summarise([_row(0, 2.0, 1.0, {}), _row(1, -0.5, 0.2, {}), _row(2, 1.0, None, {})])}
+    path = tmp_path / "plot" / "gain.png"
+    write_gain_plot(result, path)
+    import cv2
+
+    image = cv2.imread(str(path))
+    assert image is not None and image.shape[0] > 200 and image.shape[1] > 400
+    red = (image[..., 2] > 150) & (image[..., 1] < 90) & (image[..., 0] < 90)
+    assert red.any(), "the scene where ours is worse is drawn in red"
+
+
+def test_one_tiny_scene_end_to_end(tmp_path, capsys):
+    """The whole method and the baseline on one small random scene: a row with every figure, a summary, the JSON
+    and the plot; a second call with --resume reuses the scene's result instead of training again."""
+    cfg = BenchSuiteConfig(split="dev", seeds=(1,), res="48x36", n_train=10, n_test=2, base_iterations=60,
+                           contrastive_iterations=30, finetune_iterations=30, json=tmp_path / "suite.json",
+                           data_root=tmp_path / "data", out_dir=tmp_path / "runs", sequential=True)
+    cfg.main()
+    result = json.loads((tmp_path / "suite.json").read_text())
+    assert (tmp_path / "suite.png").exists()
+    (row,) = result["scenes"]
+    assert row["seed"] == 1 and row["instances"] >= 3 and row["scene"]["groups"]
+    for who in ("baseline", "ours"):
+        assert all(isinstance(row[who][k], float) for k in ("psnr", "psnr_masked", "ssim_masked"))
+    assert row["gain_masked"] == pytest.approx(row["ours"]["psnr_masked"] - row["baseline"]["psnr_masked"])
+    assert set(row["time_s"]) >= {"sim", "base", "contrastive", "segmentation", "registration", "finetune",
+                                  "ours", "baseline"}
+    assert row["time_s"]["base"] > 0 and row["time_s"]["finetune"] >= 0
+    assert result["summary"]["scenes"] == 1 and result["parameters"]["baseline_iterations"] == 120
+    assert "masked PSNR gain: mean" in capsys.readouterr().out
+
+    cfg.resume = True
+    cfg.json = tmp_path / "again.json"
+    cfg.main()
+    assert "reusing" in capsys.readouterr().out
+    assert json.loads((tmp_path / "again.json").read_text())["scenes"] == result["scenes"]
