@@ -276,3 +276,46 @@ def test_pixels_map_between_a_distorted_image_and_a_pinhole_one():
         assert np.allclose(undistorted_to_captured_pixel(tuple(expected), 2, K_new, fisheye, K), xy, atol=1e-3)
     # no distortion: only the intrinsics change
     assert np.allclose(captured_to_undistorted_pixel((10.0, 20.0), 1, K, np.zeros(6), K), (10.0, 20.0))
+
+
+@pytest.mark.parametrize("how", ["none", "applied_transform", "colmap_folder"])
+def test_frame_cameras_are_the_cameras_nerfstudio_trains_with(tmp_path, how):
+    """The cameras every stage renders from transforms.json (masks, clicks, evaluation) equal the datamanager's,
+    also when the poses were saved through an ``applied_transform`` (``ns-process-data`` writes one) or the
+    folder holds ``colmap/sparse/0`` (nerfstudio then assumes its older COLMAP convention); the ground-truth
+    object poses follow the same transform."""
+    from splatreplace_ns.masks.base import frame_cameras
+
+    meta = write_dataset(tmp_path)
+    if how != "none":
+        applied = np.eye(4)
+        applied[:3] = np.array([[0.0, 1.0, 0.0, 0.3], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, -1.0, 0.1]])
+        if how == "applied_transform":
+            meta["applied_transform"] = applied[:3].tolist()
+        else:
+            applied[:3, 3] = 0.0  # the convention nerfstudio assumes has no translation
+            (tmp_path / "colmap" / "sparse" / "0").mkdir(parents=True)
+        for frame in meta["frames"]:  # the saved poses are the original ones with applied_transform applied
+            frame["transform_matrix"] = (applied @ np.asarray(frame["transform_matrix"])).tolist()
+        for inst in meta["instances"]:
+            if "transform_matrix" in inst:
+                inst["transform_matrix"] = (applied @ np.asarray(inst["transform_matrix"])).tolist()
+        (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    dm = setup_dm(tmp_path)
+    outputs = dm.train_dataparser_outputs
+    frames = frame_cameras(tmp_path / "transforms.json", outputs.dataparser_transform, outputs.dataparser_scale)
+    for index, path in enumerate(dm.train_dataset.image_filenames):
+        k = frames.index_of(str(Path(path).relative_to(tmp_path)), "test")
+        assert torch.allclose(frames.cameras.camera_to_worlds[k], dm.train_dataset.cameras.camera_to_worlds[index],
+                              atol=1e-5), (how, path)
+    # the object seen from a camera does not depend on how the poses were saved
+    reference = tmp_path.parent / f"{tmp_path.name}_plain"
+    write_dataset(reference)
+
+    def object_in_first_camera(dm) -> torch.Tensor:
+        c2w = torch.eye(4)
+        c2w[:3] = dm.train_dataset.cameras.camera_to_worlds[0]
+        pose = dm.train_dataparser_outputs.metadata["instances"][0]["transform_matrix"]
+        return torch.linalg.inv(c2w) @ pose
+
+    assert torch.allclose(object_in_first_camera(dm), object_in_first_camera(setup_dm(reference)), atol=1e-5), how

@@ -48,6 +48,47 @@ def normalise_object_pose(
     return scaled @ np.asarray(object_to_world, dtype=np.float64)
 
 
+def applied_transform(meta: Dict, data_dir: Path) -> Optional[np.ndarray]:
+    """[3, 4] nerfstudio's ``applied_transform``: from the coordinates of the original data (a COLMAP model) to
+    those of the poses as ``transforms.json`` saves them; None when there is none.
+
+    ``ns-process-data`` writes it; without it nerfstudio assumes its older COLMAP convention when the folder holds
+    ``colmap/sparse/0`` (the same rule as nerfstudio's own parser).
+    """
+    if "applied_transform" in meta:
+        value = np.asarray(meta["applied_transform"], dtype=np.float64)
+        if value.shape != (3, 4) or not np.isfinite(value).all():
+            raise DatasetFormatError(f"{data_dir / 'transforms.json'}: 'applied_transform' must be a 3x4 matrix of "
+                                     f"numbers, got shape {value.shape}")
+        return value
+    if (Path(data_dir) / "colmap" / "sparse" / "0").exists():
+        return np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]])
+    return None
+
+
+def saved_to_normalised(dataparser_transform: np.ndarray, meta: Dict, data_dir: Path) -> np.ndarray:
+    """[4, 4] the rigid transform nerfstudio applied to the poses as ``transforms.json`` saves them (cameras' and
+    objects'), before its scale.
+
+    nerfstudio's stored ``dataparser_transform`` maps the *original* data's coordinates: it already holds
+    ``applied_transform``, which the saved poses have had applied once. Applying it to them again (what every
+    place that rendered from ``transforms.json`` did) puts an ``ns-process-data`` capture's cameras somewhere the
+    trained model is not.
+
+    Args:
+        dataparser_transform: [3, 4] the parser's ``dataparser_transform``.
+        meta: the transforms.json contents; data_dir: its folder.
+    """
+    transform = np.eye(4)
+    transform[:3] = np.asarray(dataparser_transform, dtype=np.float64)
+    applied = applied_transform(meta, data_dir)
+    if applied is None:
+        return transform
+    applied4 = np.eye(4)
+    applied4[:3] = applied
+    return transform @ np.linalg.inv(applied4)
+
+
 SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
 
 
@@ -103,7 +144,7 @@ class SplatReplaceDataParser(Nerfstudio):
         outputs.metadata["instance_mask_filenames"] = self._instance_mask_filenames(
             meta, data_dir, outputs.image_filenames, transforms_path
         )
-        outputs.metadata["instances"] = self._instances(meta, outputs)
+        outputs.metadata["instances"] = self._instances(meta, outputs, data_dir)
         outputs.metadata["instance_masks_source"] = self._instance_masks_source(meta, transforms_path)
         outputs.metadata["depth_zero_is_far"] = self._depth_zero_is_far(meta, transforms_path)
         return outputs
@@ -148,8 +189,8 @@ class SplatReplaceDataParser(Nerfstudio):
         return [by_name[Path(p).name] for p in image_filenames]
 
     @staticmethod
-    def _instances(meta: Dict, outputs: DataparserOutputs) -> List[Dict]:
-        transform = outputs.dataparser_transform.numpy()
+    def _instances(meta: Dict, outputs: DataparserOutputs, data_dir: Path) -> List[Dict]:
+        transform = saved_to_normalised(outputs.dataparser_transform.numpy(), meta, data_dir)[:3]
         instances = []
         for inst in meta.get("instances", []):
             entry = {

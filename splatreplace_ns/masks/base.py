@@ -16,7 +16,7 @@ import torch
 
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from splatreplace_ns.datamanager.dataparser import SPLIT_LISTS, DatasetFormatError
+from splatreplace_ns.datamanager.dataparser import SPLIT_LISTS, DatasetFormatError, saved_to_normalised
 from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, undistorted_to_captured_pixel
 from splatreplace_ns.segment.clicks import resized_pixel
 
@@ -77,7 +77,8 @@ def frame_cameras(
 
     Args:
         transforms_path: the dataset's transforms.json.
-        dataparser_transform: [3, 4] the parser's world transform (what nerfstudio stored in the run).
+        dataparser_transform: [3, 4] the parser's world transform (what nerfstudio stored in the run; an
+            ``applied_transform`` in transforms.json is taken into account, as nerfstudio does).
         dataparser_scale: its scale, applied to camera centres after the transform.
         downscale: nerfstudio's image downscale factor (``DataParser.downscale_factor``): the cameras are
             scaled to 1/downscale of the image files, as the dataparser scales them.
@@ -108,8 +109,7 @@ def frame_cameras(
             f"{transforms_path}: camera_model {model!r} is not supported for mask rendering; "
             "use PINHOLE or OPENCV (undistort fisheye captures first)"
         )
-    transform = np.eye(4)
-    transform[:3] = dataparser_transform.double().numpy()
+    transform = saved_to_normalised(dataparser_transform.double().numpy(), meta, Path(transforms_path).parent)
     poses = transform @ np.stack(c2ws)
     poses[:, :3, 3] *= float(dataparser_scale)
     cameras = Cameras(
