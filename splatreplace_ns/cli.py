@@ -26,6 +26,7 @@ from splatreplace_ns.demo import DemoCommand
 from splatreplace_ns.export import ExportCommand
 from splatreplace_ns.masks.command import MasksCommand
 from splatreplace_ns.sim import SimCommand
+from splatreplace_ns.user_errors import user_error_types
 
 BenchCommands = Union[
     Annotated[BenchRenderConfig, tyro.conf.subcommand("render")],
@@ -58,22 +59,11 @@ Commands = Union[
 ]
 
 
-def user_errors() -> tuple:
-    """The errors that name a bad input (a click, a dataset file, an ONNX model, a missing path): printed as
-    one line, not as a traceback."""
-    from splatreplace_ns.datamanager.dataparser import DatasetFormatError
-    from splatreplace_ns.masks.lifting import ClickError
-    from splatreplace_ns.masks.onnx_sam import OnnxModelError
-    from splatreplace_ns.segment.instances import SelectionError
-
-    return (ClickError, DatasetFormatError, OnnxModelError, SelectionError, FileNotFoundError)
-
-
 def entrypoint() -> None:
     command = tyro.cli(tyro.conf.OmitSubcommandPrefixes[Commands])
     try:
         command.main()
-    except user_errors() as err:
+    except user_error_types() as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
 

@@ -148,8 +148,8 @@ def test_unknown_instance_id_is_named(tmp_path):
 def test_mask_size_mismatch_is_named(tmp_path):
     write_dataset(tmp_path)
     cv2.imwrite(str(tmp_path / "masks/0001.png"), np.zeros((H // 2, W), np.uint16))  # not the image's shape
-    with pytest.raises(DatasetFormatError, match=r"masks/0001\.png: size 32x12 does not match"):
-        setup_dm(tmp_path).next_train(0)
+    with pytest.raises(DatasetFormatError, match=r"masks/0001\.png: size 32x12 is not its image's 32x24"):
+        setup_dm(tmp_path)  # found before training, not at the first step that reads the mask
 
 
 def test_a_mask_of_the_image_at_another_scale_is_resized_to_it(tmp_path):

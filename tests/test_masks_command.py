@@ -13,6 +13,7 @@ import torch
 
 from splatreplace_ns.masks.capture import strip_ground_truth
 from splatreplace_ns.masks.command import MasksCommand, make_masks
+from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.masks.lifting import ClickError
 from splatreplace_ns.masks.onnx_sam import OnnxModelError
 from splatreplace_ns.sim import make_scene
@@ -125,7 +126,7 @@ def test_bad_inputs_leave_transforms_untouched(base_run, tmp_path):
         run_with([clicks[0], sky])
     with pytest.raises(ClickError, match="click 1 .*same object as click 0"):
         run_with([clicks[0], dict(clicks[0])])
-    with pytest.raises(ClickError, match="click 0 .*not a frame"):
+    with pytest.raises(DatasetFormatError, match="click 0 names images/missing.png, which is not a frame"):
         run_with([dict(clicks[0], file_path="images/missing.png")])
     with pytest.raises(OnnxModelError, match="--sam-decoder"):
         run_with(clicks, backend="onnx-sam", sam_encoder=tmp_path / "e.onnx")
@@ -413,7 +414,7 @@ def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
     strip_ground_truth(scene, capture)
     clicks = json.loads((capture / "clicks.json").read_text())
     (capture / "clicks.json").write_text(json.dumps(clicks[:1] + [{**clicks[1], "file_path": "images/9999.png"}]))
-    with pytest.raises(ValueError, match=r"click 1 \(images/9999.png\) is not a training image"):
+    with pytest.raises(DatasetFormatError, match=r"click 1 names images/9999.png, which is not a training image"):
         setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
     (capture / "clicks.json").unlink()
     with pytest.raises(ValueError, match=r"no instance masks .*splatreplace masks .* --viewer"):

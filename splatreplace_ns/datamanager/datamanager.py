@@ -108,7 +108,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         for split, dataset in (("train", self.train_dataset), ("eval", self.eval_dataset)):
             outputs = dataset._dataparser_outputs
             filenames = SplatReplaceDataParser._instance_mask_filenames(meta, transforms.parent, outputs.image_filenames, transforms)
-            instances = SplatReplaceDataParser._instances(meta, outputs)
+            instances = SplatReplaceDataParser._instances(meta, outputs, transforms.parent)
             source = SplatReplaceDataParser._instance_masks_source(meta, transforms)
             outputs.metadata.update(instance_mask_filenames=filenames, instances=instances, instance_masks_source=source)
             dataset.use_instance_masks(filenames, instances, source)

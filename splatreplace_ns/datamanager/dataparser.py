@@ -21,12 +21,13 @@ from nerfstudio.data.dataparsers import nerfstudio_dataparser
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
-from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from splatreplace_ns.datamanager.errors import DatasetFormatError
+from splatreplace_ns.datamanager.validate import SPLIT_LISTS, check_transforms, read_json, with_both_eval_splits
 
-class DatasetFormatError(ValueError):
-    """A dataset file is missing or malformed; the message names the file and the problem."""
+__all__ = ["SPLIT_LISTS", "DatasetFormatError", "SplatReplaceDataParser", "SplatReplaceDataParserConfig",
+           "normalise_object_pose", "saved_to_normalised"]
 
 
 def normalise_object_pose(
@@ -89,16 +90,6 @@ def saved_to_normalised(dataparser_transform: np.ndarray, meta: Dict, data_dir: 
     return transform @ np.linalg.inv(applied4)
 
 
-SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
-
-
-def without_split_lists(path: Path) -> Dict:
-    """``transforms.json`` as nerfstudio reads it, less its split lists (nerfstudio's parser obeys them before
-    its ``eval_mode``)."""
-    meta = load_from_json(Path(path))
-    return {key: value for key, value in meta.items() if key not in SPLIT_LISTS}
-
-
 @dataclass
 class SplatReplaceDataParserConfig(NerfstudioDataParserConfig):
     """nerfstudio's parser plus instance masks, instances and ground-truth poses."""
@@ -130,14 +121,16 @@ class SplatReplaceDataParser(Nerfstudio):
                 f"{transforms_path}: file not found (expected a nerfstudio transforms.json, or a COLMAP model in "
                 "sparse/0)"
             )
-        meta = load_from_json(transforms_path)
+        meta = check_transforms(read_json(transforms_path, "transforms.json"), transforms_path)
         if "depth_unit_scale_factor" in meta:
             self.config.depth_unit_scale_factor = float(meta["depth_unit_scale_factor"])
-        if self.config.train_on_every_frame:
+        if self.config.train_on_every_frame:  # nerfstudio's parser obeys split lists before its eval_mode
             self.config.eval_mode = "all"
-            with patch.object(nerfstudio_dataparser, "load_from_json", without_split_lists):
-                outputs = super()._generate_dataparser_outputs(split)
+            parsed = {key: value for key, value in meta.items() if key not in SPLIT_LISTS}
         else:
+            parsed = with_both_eval_splits(meta)
+        # nerfstudio's parser reads the file again: hand it the checked contents
+        with patch.object(nerfstudio_dataparser, "load_from_json", lambda _path: dict(parsed)):
             outputs = super()._generate_dataparser_outputs(split)
         data_dir = transforms_path.parent
 

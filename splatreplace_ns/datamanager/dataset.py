@@ -13,14 +13,8 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 
-from splatreplace_ns.datamanager.dataparser import DatasetFormatError
-
-
-def same_picture_resized(width: int, height: int, new_width: int, new_height: int) -> bool:
-    """Whether a ``new_width`` × ``new_height`` image is a ``width`` × ``height`` one resized by one factor (each
-    side rounded either way, as nerfstudio's downscaled ``images_<f>/`` are)."""
-    factor = new_width / width
-    return abs(height * factor - new_height) < 1.0 + 1e-9 and abs(new_height / height * width - new_width) < 1.0 + 1e-9
+from splatreplace_ns.datamanager.errors import DatasetFormatError
+from splatreplace_ns.datamanager.validate import mask_size_problem
 
 
 def read_instance_mask(path: Path, height: int, width: int, valid_ids: set | None = None) -> torch.Tensor:
@@ -37,10 +31,9 @@ def read_instance_mask(path: Path, height: int, width: int, valid_ids: set | Non
     if mask.ndim == 3:
         raise DatasetFormatError(f"{path}: instance masks must be single-channel (16-bit PNG), got {mask.shape[2]} channels")
     if mask.shape != (height, width):
-        if not same_picture_resized(mask.shape[1], mask.shape[0], width, height):
-            raise DatasetFormatError(
-                f"{path}: size {mask.shape[1]}x{mask.shape[0]} does not match its image {width}x{height}"
-            )
+        problem = mask_size_problem((mask.shape[1], mask.shape[0]), (width, height))
+        if problem:
+            raise DatasetFormatError(f"{path}: {problem}")
         # the image is read at another scale (nerfstudio's images_<f>/, or masks made at such a scale): labels
         # take the nearest pixel, never a blend of two ids
         mask = cv2.resize(mask, (width, height), interpolation=cv2.INTER_NEAREST)

@@ -13,7 +13,8 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from splatreplace_ns.datamanager.dataparser import DatasetFormatError
+from splatreplace_ns.datamanager.errors import DatasetFormatError
+from splatreplace_ns.datamanager.files import write_atomically
 from splatreplace_ns.register.virtual_cameras import OPENCV_TO_OPENGL
 
 SPARSE_CANDIDATES = ("sparse/0", "colmap/sparse/0", "sparse")
@@ -106,5 +107,5 @@ def colmap_to_transforms(data: Path, sparse: Optional[Path] = None, images_dir: 
         reconstruction.export_PLY(str(ply))
         meta["ply_file_path"] = ply.name
     transforms = data / "transforms.json"
-    transforms.write_text(json.dumps(meta, indent=2) + "\n")
+    write_atomically(transforms, json.dumps(meta, indent=2) + "\n")
     return transforms

@@ -12,7 +12,6 @@ before anything is written.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +42,8 @@ from splatreplace_ns.masks.viewer_clicks import (
     write_clicks_json,
 )
 from splatreplace_ns.masks.writer import write_dataset_masks
-from splatreplace_ns.segment.clicks import Click, clicks_digest, load_clicks
+from splatreplace_ns.datamanager.validate import check_transforms, image_size, read_json
+from splatreplace_ns.segment.clicks import Click, check_clicks, clicks_digest, load_clicks
 
 
 @dataclass
@@ -419,11 +419,11 @@ def make_masks(cfg: MasksCommand) -> Dict:
     transforms = _transforms(data)
     sam = OnnxSam(cfg.sam_encoder, cfg.sam_decoder) if cfg.backend == "onnx-sam" else None
     clicks = None if cfg.viewer else _clicks(cfg)  # bad clicks are reported before the base stage trains
-    meta = json.loads(transforms.read_text())
-    names = {Path(f["file_path"]).name for f in meta.get("frames", [])}
-    for click in clicks or []:
-        if Path(click.file_path).name not in names:
-            raise ClickError(f"click {click.index} ({click.file_path}): not a frame of {transforms}")
+    meta = check_transforms(read_json(transforms, "transforms.json"), transforms)
+    if clicks is not None:
+        check_clicks(clicks, cfg.clicks or data / "clicks.json",
+                     {Path(f["file_path"]).name: image_size(data / f["file_path"]) for f in meta["frames"]},
+                     f"a frame of {transforms}")
 
     start = time.perf_counter()
     if cfg.load_config:

@@ -12,7 +12,6 @@ only changes the status message.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import threading
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ import torch
 from nerfstudio.viewer.viewer_elements import ViewerClick
 
 from splatreplace_ns.masks.base import FrameCameras
+from splatreplace_ns.datamanager.files import write_atomically
 from splatreplace_ns.masks.lifting import ClickError, lift_pixel, project_points, view_and_intrinsics, visible_by_depth
 from splatreplace_ns.segment.clicks import Click
 from splatreplace_ns.viewer.click_controls import ClickControls
@@ -173,9 +173,7 @@ def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
         shutil.copyfile(path, backup)
     entries = [{"file_path": c.file_path, "xy": [_pixel_coordinate(c.xy[0]), _pixel_coordinate(c.xy[1])], "class": c.cls}
                for c in clicks]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(entries, indent=2) + "\n")
-    os.replace(tmp, path)
+    write_atomically(path, json.dumps(entries, indent=2) + "\n")
     return backup
 
 

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 from typing import Dict, List, Sequence
 
 import cv2
 import numpy as np
+
+from splatreplace_ns.datamanager.files import write_atomically
 
 BACKUP_SUFFIX = ".before-masks"
 MASKS_SOURCE_KEY = "instance_masks_source"
@@ -22,12 +23,6 @@ CLICKS_DIGEST_KEY = "instance_masks_clicks"
 def mask_path(frame_index: int) -> str:
     """``masks/NNNN.png`` for a frame (relative to the dataset folder)."""
     return f"masks/{frame_index:04d}.png"
-
-
-def _replace_atomically(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
 
 
 def encode_mask(mask: np.ndarray) -> bytes:
@@ -84,6 +79,6 @@ def write_dataset_masks(data: Path, masks: Sequence[np.ndarray], instances: List
         shutil.copy2(transforms, backup)
     (Path(data) / "masks").mkdir(exist_ok=True)
     for path, mask in zip(paths, masks):
-        _replace_atomically(Path(data) / path, encode_mask(mask))
-    _replace_atomically(transforms, (json.dumps(new_meta, indent=2) + "\n").encode())
+        write_atomically(Path(data) / path, encode_mask(mask))
+    write_atomically(transforms, (json.dumps(new_meta, indent=2) + "\n").encode())
     return transforms

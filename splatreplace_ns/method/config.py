@@ -15,6 +15,9 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from splatreplace_ns.method.cpu_allocator import keep_freed_buffers
 from splatreplace_ns.method.pipeline import SplatReplacePipelineConfig
+from splatreplace_ns.user_errors import install_excepthook
+
+install_excepthook()  # ns-train: a bad input is one line naming the file, not a traceback
 
 
 @dataclass

@@ -35,7 +35,8 @@ from splatreplace_ns.register.free_space import observed_depth
 from splatreplace_ns.render import world_to_camera
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
-from splatreplace_ns.segment.clicks import Click, clicks_digest, clicks_file_appeared, load_clicks
+from splatreplace_ns.datamanager.validate import image_size
+from splatreplace_ns.segment.clicks import Click, check_clicks, clicks_digest, clicks_file_appeared, load_clicks
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
@@ -112,6 +113,7 @@ class SplatReplacePipeline(VanillaPipeline):
         self._in_training_callback = False
         self._masks_stale = False
         if self.test_mode == "val" and self.config.contrastive_iterations > 0:
+            self._check_clicks_before_training()
             self._masks_stale = self._masks_made_from_other_clicks()
             if not self.datamanager.has_instance_masks or self._masks_stale:
                 self._check_clicks_for_masks()
@@ -223,6 +225,20 @@ class SplatReplacePipeline(VanillaPipeline):
             "--pipeline.contrastive-iterations 0 to train the base stage only"
         )
 
+    def _check_clicks_before_training(self) -> None:
+        """A clicks.json that is there is read and checked now, not when the base stage has trained: each click
+        must name a training image and lie on a pixel of its file."""
+        path = self.clicks_path()
+        if not path.exists():
+            return
+        transforms = self.transforms_path()
+        files = {Path(f["file_path"]).name: transforms.parent / f["file_path"]
+                 for f in json.loads(transforms.read_text())["frames"]}
+        training = {Path(p).name for p in self.datamanager.train_dataset.image_filenames}
+        check_clicks(load_clicks(path), path, {name: image_size(files[name]) for name in training if name in files},
+                     f"a training image of {transforms} (without train_filenames there, nerfstudio holds out every "
+                     "tenth image for evaluation; click the instance in another image)")
+
     def _check_clicks_for_masks(self) -> None:
         """A capture without masks needs clicks to make them (clicks.json, or the viewer when the base stage
         ends); say so before the base stage trains."""
@@ -248,14 +264,6 @@ class SplatReplacePipeline(VanillaPipeline):
                 "click per instance in the viewer ('Click an instance', then 'Write masks')"
             )
             return
-        names = {Path(p).name for p in self.datamanager.train_dataset.image_filenames}
-        for click in load_clicks(self.clicks_path()):
-            if Path(click.file_path).name not in names:
-                raise ValueError(
-                    f"{self.clicks_path()}: click {click.index} ({click.file_path}) is not a training image (without "
-                    "train_filenames in transforms.json nerfstudio holds out every tenth image for evaluation); "
-                    "click the instance in another image"
-                )
         if not self._masks_stale:
             CONSOLE.log(f"{data} has no instance masks: they will be made from {self.clicks_path()} after the base stage")
 

@@ -6,7 +6,10 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
+
+from splatreplace_ns.datamanager.errors import DatasetFormatError
+from splatreplace_ns.datamanager.validate import read_json
 
 
 @dataclass(frozen=True)
@@ -37,24 +40,45 @@ def resized_pixel(xy: Tuple[float, float], factor: float) -> Tuple[float, float]
 
 
 def load_clicks(path: Path) -> List[Click]:
-    """Reads ``[{"file_path", "xy": [u, v], "class"}, ...]``; errors name the file and the entry."""
-    try:
-        entries = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    """Reads ``[{"file_path", "xy": [u, v], "class"}, ...]``; errors (``DatasetFormatError``) name the file and the
+    entry."""
+    entries = read_json(path, "clicks file")
     if not isinstance(entries, list):
-        raise ValueError(f"{path}: expected a list of clicks, got {type(entries).__name__}")
+        raise DatasetFormatError(f"{path}: expected a list of clicks, got {type(entries).__name__}")
     clicks = []
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or "file_path" not in entry or "xy" not in entry:
-            raise ValueError(f"{path}: click {i} needs 'file_path' and 'xy' ([u, v] pixel)")
+            raise DatasetFormatError(f"{path}: click {i} needs 'file_path' and 'xy' ([u, v] pixel)")
         xy = entry["xy"]
-        if not (isinstance(xy, (list, tuple)) and len(xy) == 2 and all(isinstance(c, (int, float)) for c in xy)):
-            raise ValueError(f"{path}: click {i} has 'xy' = {xy!r}; expected [u, v] pixel coordinates")
+        if not (isinstance(xy, (list, tuple)) and len(xy) == 2
+                and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in xy)):
+            raise DatasetFormatError(f"{path}: click {i} has 'xy' = {xy!r}; expected [u, v] pixel coordinates")
+        if not all(math.isfinite(c) for c in xy):
+            raise DatasetFormatError(f"{path}: click {i} has 'xy' = {list(xy)}; pixel coordinates must be finite numbers")
         clicks.append(Click(i, str(entry["file_path"]), (float(xy[0]), float(xy[1])), str(entry.get("class", "object"))))
     if not clicks:
-        raise ValueError(f"{path}: no clicks; give one per instance")
+        raise DatasetFormatError(f"{path}: no clicks; give one per instance")
     return clicks
+
+
+def check_clicks(clicks: List[Click], path: Path, image_sizes: Dict[str, Tuple[int, int]], allowed: str) -> None:
+    """Every click names one of the allowed images and lies on a pixel of it; else one ``DatasetFormatError`` that
+    names the click.
+
+    Args:
+        clicks: from :func:`load_clicks`; path: the clicks file (for messages).
+        image_sizes: {image file name: (width, height) of the file}: the images a click may name (clicks are pixels
+            of the image files, whatever size the run reads them at).
+        allowed: what those images are, for the message (e.g. "a training image of DIR/transforms.json").
+    """
+    for click in clicks:
+        name = Path(click.file_path).name
+        if name not in image_sizes:
+            raise DatasetFormatError(f"{path}: click {click.index} names {click.file_path}, which is not {allowed}")
+        width, height = image_sizes[name]
+        if pixel_index(click.xy[0], click.xy[1], width, height) is None:
+            raise DatasetFormatError(f"{path}: click {click.index} at {list(click.xy)} is outside its image "
+                                     f"{click.file_path} ({width}x{height}; u is the column, v the row)")
 
 
 def clicks_file_appeared(path: Path) -> Callable[[], bool]:

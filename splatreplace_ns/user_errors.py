@@ -1,0 +1,33 @@
+"""The errors that name a bad input (a dataset file, a click, an ONNX model): a user sees their one-line message,
+not a traceback, from ``splatreplace`` and from ``ns-train splat-replace`` alike."""
+
+from __future__ import annotations
+
+import sys
+
+
+def user_error_types() -> tuple:
+    """The exception classes whose message is the whole story."""
+    from splatreplace_ns.datamanager.errors import DatasetFormatError
+    from splatreplace_ns.masks.lifting import ClickError
+    from splatreplace_ns.masks.onnx_sam import OnnxModelError
+    from splatreplace_ns.segment.instances import SelectionError
+
+    return (ClickError, DatasetFormatError, OnnxModelError, SelectionError, FileNotFoundError)
+
+
+def install_excepthook() -> None:
+    """Print an uncaught user error as ``error: <message>`` (the process still exits with status 1); every other
+    exception keeps its traceback. Installed once; ``ns-train`` imports the method's config, which calls this."""
+    previous = sys.excepthook
+    if getattr(previous, "splatreplace_user_errors", False):
+        return
+
+    def hook(kind, value, traceback) -> None:
+        if isinstance(value, user_error_types()):
+            print(f"error: {value}", file=sys.stderr)
+        else:
+            previous(kind, value, traceback)
+
+    hook.splatreplace_user_errors = True
+    sys.excepthook = hook
