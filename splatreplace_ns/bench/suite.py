@@ -29,6 +29,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 import torch
 
 from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.demo import DemoCommand
 
 DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
 REPORT_SEEDS: Tuple[int, ...] = tuple(range(10000, 10008))
@@ -50,17 +51,17 @@ class BenchSuiteConfig:
     """Run these seeds of the split instead (each must belong to it)."""
     quick: bool = False
     """The first 4 dev scenes at 96x72 (overrides --scenes and --res)."""
-    res: str = "128x96"
-    """Image size WxH of the generated scenes."""
-    n_train: int = 48
+    res: str = DemoCommand.res
+    """Image size WxH of the generated scenes (default: the demo's)."""
+    n_train: int = DemoCommand.n_train
     """Training views per scene."""
-    n_test: int = 8
+    n_test: int = DemoCommand.n_test
     """Test views per scene."""
-    base_iterations: int = 1500
-    """Base 3DGS* iterations of ours (the demo's budget; the baseline gets base + contrastive + finetune)."""
-    contrastive_iterations: int = 500
+    base_iterations: int = DemoCommand.base_iterations
+    """Base 3DGS* iterations of ours (default: the demo's budget; the baseline gets base + contrastive + finetune)."""
+    contrastive_iterations: int = DemoCommand.contrastive_iterations
     """Contrastive-feature iterations of ours."""
-    finetune_iterations: int = 1000
+    finetune_iterations: int = DemoCommand.finetune_iterations
     """Shared-template fine-tuning iterations of ours."""
     json: Optional[Path] = None
     """Where to write the results as JSON (and the plot beside it as PNG)."""
