@@ -166,6 +166,7 @@ def _registration_summary(report: Optional[Dict], model_registration: Dict) -> D
         "failures": failures,
         "wrong": [r["gt_id"] for r in rows if r["rotation_error_deg"] is not None and r["rotation_error_deg"] > WRONG_POSE_DEG],
         "per_instance": report["per_instance"],
+        "gate": {int(k): v["gate"] for k, v in model_registration.items() if "gate" in v},
     }
 
 
@@ -285,7 +286,8 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
                        + cfg.finetune_iterations, "sequential": cfg.sequential},
         "scenes": rows,
         "summary": summarise(rows),
-        "time_s": time.perf_counter() - t0,
+        "time_s": sum(row["time_s"]["total"] for row in rows),  # every scene's, those reused by --resume too
+        "wall_s_this_run": time.perf_counter() - t0,
         "machine": {"platform": platform.platform(), "cpu_count": cores, "cuda": torch.cuda.is_available()},
         "versions": versions(),
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
