@@ -256,6 +256,18 @@ def registration_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
     return report, None
 
 
+def replacement_report(model) -> Dict[str, Dict]:
+    """Per instance: whether it was replaced by its class template and why (registration and the check of its
+    pose against the training images); empty before registration. Needs no ground truth."""
+    out = {}
+    for iid, entry in sorted((getattr(model, "registration", None) or {}).items()):
+        row = {"replaced": bool(entry.get("success")), "why": entry.get("message", "")}
+        if "gate" in entry:
+            row["pose_check"] = {k: entry["gate"].get(k) for k in ("psnr_own", "psnr_pose", "psnr_best_turn", "best_turn_deg")}
+        out[str(iid)] = row
+    return out
+
+
 def json_safe(value: Any) -> Any:
     """Tensors, numpy values and tuples → plain JSON values; NaN/±inf → None; dict keys → str."""
     if isinstance(value, dict):
@@ -311,6 +323,9 @@ def evaluation_report(pipeline, recorder: EvalViewRecorder) -> Dict:
             f"PSNR of the squared error pooled over each {'' if from_clicks else 'ground-truth '}instance's pixels "
             "in all eval views (the dataset's instance masks); key 0 is the background (pixels of no instance)"
         )
+    replaced = replacement_report(model)
+    if replaced:
+        report["replacement"] = replaced
     for name, make in (("segmentation", segmentation_report), ("registration", registration_report)):
         section, reason = make(pipeline)
         if section is None:

@@ -36,6 +36,7 @@ from splatreplace_ns.eval.perceptual import LocalLPIPS
 from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
 from splatreplace_ns.method.sky import pixel_directions, sky_colour, sky_opacity_l1
 from splatreplace_ns.render import rasterize, resolve_backend, world_to_camera
+from splatreplace_ns.render.sh import sh_to_color
 from splatreplace_ns.template.build import InstanceTable
 from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses, offsets_l1
 
@@ -557,10 +558,7 @@ class SplatReplaceModel(SplatfactoModel):
         elif self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # screen-space gradients for densifying the templates
 
-        if self.uses_sky:  # [H, W, 3]: the sky behind each pixel, in training and at evaluation alike
-            background = sky_colour(self.sky_coefficients, pixel_directions(camera_to_world[0].to(self.device), K, W, H))
-        else:
-            background = self._get_background_color()
+        background = self._background(camera_to_world[0], K, W, H)
         rgb = out.image[..., :3] + (1 - out.alpha) * background
         cam_idx = (camera.metadata or {}).get("cam_idx")
         if self.config.use_exposure_correction and self.training and cam_idx is not None:
@@ -573,6 +571,43 @@ class SplatReplaceModel(SplatfactoModel):
         if self.training and scene is not None and scene.offsets is not None:
             outputs["sh_offsets_in_use"] = scene.offsets  # the L1 on offsets reuses this gather (see get_loss_dict)
         return outputs
+
+    def _background(self, camera_to_world: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+        """What shows behind the Gaussians: the sky behind each pixel [H, W, 3] (in training and at evaluation
+        alike), or splatfacto's background colour [3]."""
+        if self.uses_sky:
+            return sky_colour(self.sky_coefficients, pixel_directions(camera_to_world.to(self.device), K, width, height))
+        return self._get_background_color()
+
+    @torch.no_grad()
+    def render_gaussian_set(self, camera: Cameras, gaussians: Dict[str, torch.Tensor],
+                            extra: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Renders a given set of Gaussians as this model renders its own (its SH degree and background).
+
+        Args:
+            camera: one camera.
+            gaussians: means [N, 3], quats [N, 4], log_scales [N, 3], logit_opacities [N] or [N, 1], sh [N, K, 3].
+            extra: [N, D] features rendered alongside (alpha-weighted, no background).
+        Returns:
+            rgb [H, W, 3] in [0, 1], extra [H, W, D].
+        """
+        camera_to_world = camera.camera_to_worlds.to(self.device).reshape(-1, 3, 4)
+        viewmat = world_to_camera(camera_to_world)[0]
+        K = camera.get_intrinsics_matrices().reshape(-1, 3, 3)[0].to(self.device)
+        W, H = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
+        means, sh = gaussians["means"], gaussians["sh"]
+        if self.config.sh_degree > 0:
+            degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)  # as get_outputs
+            colors = sh_to_color(degree, means - camera_to_world[0, :3, 3], sh)
+        else:
+            colors = torch.sigmoid(sh[:, 0])
+        out = rasterize(
+            means, gaussians["quats"], torch.exp(gaussians["log_scales"]),
+            torch.sigmoid(gaussians["logit_opacities"]).reshape(-1), torch.cat((colors, extra.to(colors)), dim=-1),
+            viewmat, K, W, H, near=0.01, far=1e10, backend="gsplat" if self.uses_gsplat else "torch",
+        )
+        rgb = out.image[..., :3] + (1 - out.alpha) * self._background(camera_to_world[0], K, W, H)
+        return rgb.clamp(0.0, 1.0), out.image[..., 3:]
 
     @staticmethod
     def _tint(colors: torch.Tensor, selected: torch.Tensor, is_sh: bool) -> torch.Tensor:

@@ -40,6 +40,7 @@ from splatreplace_ns.segment.clicks import Click, check_clicks, clicks_digest, c
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
+from splatreplace_ns.register.gate import ReplacementGateConfig, gate_registrations
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.rays import ray_camera
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
@@ -89,6 +90,10 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     """A capture without instance masks gets them from the clicks of clicks.json after the base stage
     (geometric backend of ``splatreplace masks``, written into the dataset folder)."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    gate: ReplacementGateConfig = field(default_factory=ReplacementGateConfig)
+    """Before an instance is replaced, its registered pose is checked against its training images; a pose that
+    explains them clearly worse than the instance itself, or worse than the same pose turned, leaves the
+    instance as it is."""
 
     @property
     def total_iterations(self) -> int:
@@ -121,7 +126,7 @@ class SplatReplacePipeline(VanillaPipeline):
     def load_pipeline(self, loaded_state: Dict, step: int) -> None:
         super().load_pipeline(loaded_state, step)
         if getattr(self.model, "instances", None):  # the viewer lists them instead of "waits for the segmentation"
-            self.selection_controls.show_selected(self.model.instances)
+            self.selection_controls.show_selected(self.model.instances, self._not_replaced())
         if self.test_mode == "inference":  # ns-export / ns-render read plain Gaussians: give them the replaced scene
             self.model.bake_replaced_scene()
 
@@ -587,11 +592,15 @@ class SplatReplacePipeline(VanillaPipeline):
         }
         # template space of a class = the world frame of the instance its registrations map onto
         templates = {classes[iid]: int(r["template"]) for iid, r in model.registration.items() if r["success"]}
+        if self.config.gate.enabled and transforms:
+            for iid in self.gate_poses(transforms, templates, classes):
+                transforms.pop(iid)
         params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
         new_params, table = build_templates(
             params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
             merge=model.config.template_union == "merge", merge_cells_per_radius=model.config.template_merge_cells,
         )
+        self.selection_controls.show_selected(model.instances, self._not_replaced())
         if len(table.ids) == 0:
             CONSOLE.log("[bold yellow]no registered instance: the scene is not replaced; fine-tuning the segmented scene")
             return
@@ -608,6 +617,57 @@ class SplatReplacePipeline(VanillaPipeline):
             f"[bold]shared templates: {len(table.classes)} classes, {len(table.ids)} instances, "
             f"{model.num_points} stored Gaussians; fine-tuning for {self.config.finetune_iterations} steps"
         )
+
+    def _not_replaced(self) -> List[int]:
+        """Instances registration or its pose check left as they were."""
+        return [int(i) for i, r in (getattr(self.model, "registration", None) or {}).items() if not r.get("success")]
+
+    @torch.no_grad()
+    def gate_poses(self, transforms: Dict[int, torch.Tensor], templates: Dict[str, int], classes: Dict[int, str]) -> List[int]:
+        """Checks each registered pose against the training images (``splatreplace_ns.register.gate``). A better
+        turn found there replaces the pose in ``transforms``; returns the instances refused, which are marked as
+        not registered and stay as they are."""
+        start = time.perf_counter()
+        model = self.model
+        was_training = model.training
+        model.eval()
+        scene = {
+            "means": model.means.detach(), "quats": model.quats.detach(), "log_scales": model.scales.detach(),
+            "logit_opacities": model.opacities.detach(),
+            "sh": torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1).detach(),
+        }
+        cameras = self.datamanager.train_dataset.cameras
+        images = [data["image"] for data in self.datamanager.cached_train]
+
+        def render(view: int, gaussians: Dict[str, torch.Tensor], extra: torch.Tensor):
+            return model.render_gaussian_set(cameras[view : view + 1], gaussians, extra)
+
+        up = self.registration_report.get("up_axis", self.config.registration.up_axis)
+        scores = gate_registrations(scene, model.instance_labels, classes, transforms, templates, images, render, up,
+                                    self.config.gate)
+        model.train(was_training)
+        refused = []
+        for iid, score in scores.items():
+            entry = model.registration[iid]
+            entry["gate"] = score.as_dict()
+            if score.passed and score.transform is not None:
+                transforms[iid] = torch.tensor(score.transform, dtype=torch.float32)
+                entry["transform"] = score.transform
+                entry["message"] = f"instance {iid}: {score.reason}"
+                CONSOLE.log(entry["message"])
+            if not score.passed:
+                refused.append(iid)
+                entry["success"] = False
+                entry["message"] = f"instance {iid}: not replaced: {score.reason}"
+                CONSOLE.log(f"[bold yellow]{entry['message']}")
+        self.registration_report["gate"] = {"time_s": time.perf_counter() - start, "refused": refused,
+                                            "checked": sorted(scores),
+                                            "turned": sorted(i for i, sc in scores.items() if sc.transform is not None)}
+        self.registration_report.setdefault("failures", []).extend(refused)
+        self.registration_report["time_s"] = self.registration_report.get("time_s", 0.0) + time.perf_counter() - start
+        CONSOLE.log(f"pose check against the training images: {len(scores)} instances, {len(refused)} refused "
+                    f"({time.perf_counter() - start:.1f} s)")
+        return refused
 
     def _finetune_strategy(self):
         """Densification for the templates: no opacity reset (the scene is already trained), refinement

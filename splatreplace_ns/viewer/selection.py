@@ -36,16 +36,18 @@ class InstanceSelectionControls(ClickControls):
         return self._pipeline[0]
 
     @staticmethod
-    def _listing(items) -> str:
+    def _listing(items, not_replaced=()) -> str:
         # instances labelled otherwise than by clicks (ground truth) carry no Gaussian count
         return "; ".join(
             f"{i['id']}: {i.get('class', 'object')}" + (f" ({i['num_gaussians']} G)" if "num_gaussians" in i else "")
+            + (" (not replaced)" if int(i["id"]) in not_replaced else "")
             for i in items
         ) or "(none)"
 
-    def show_selected(self, instances) -> None:
-        """A run loaded after its segmentation (``ns-viewer``, a resumed run): its instances, listed."""
-        self.listing.value = self._listing(instances)
+    def show_selected(self, instances, not_replaced=()) -> None:
+        """A run loaded after its segmentation (``ns-viewer``, a resumed run), or after its registration: its
+        instances, listed, those left as they were (``not_replaced`` ids) marked."""
+        self.listing.value = self._listing(instances, {int(i) for i in not_replaced})
         self._say(f"{len(instances)} instances were selected when this run was trained")
 
     def _refresh(self) -> None:
