@@ -85,6 +85,7 @@ def _images(scene, viewmats):
 
 
 CFG = ReplacementGateConfig(turns=4, max_views=4)
+ADOPT = ReplacementGateConfig(turns=4, max_views=4, adopt_turns=True)
 
 
 def _gate(with_handle: bool, pose_error_deg: float, cfg=CFG, views=None):
@@ -109,14 +110,14 @@ def test_the_true_pose_passes_and_explains_the_pixels_as_well_as_the_instance_it
 
 
 def test_a_half_turn_that_puts_the_handle_on_the_wrong_side_is_refused():
-    score = _gate(with_handle=True, pose_error_deg=180.0, cfg=ReplacementGateConfig(turns=4, max_views=4, adopt_turns=False))
+    score = _gate(with_handle=True, pose_error_deg=180.0)
     assert not score.passed and score.transform is None
     assert score.best_turn_deg == pytest.approx(180.0)  # turning it back is what explains the images
     assert score.psnr_best_turn > score.psnr_pose + CFG.margin_turn_db
 
 
 def test_the_better_turn_is_adopted_and_is_the_true_pose():
-    score = _gate(with_handle=True, pose_error_deg=180.0)
+    score = _gate(with_handle=True, pose_error_deg=180.0, cfg=ADOPT)
     assert score.passed and "under that pose" in score.reason
     _, _, T_true = _scene(True, yaw_i=math.radians(30))
     T = torch.tensor(score.transform)
@@ -126,7 +127,7 @@ def test_the_better_turn_is_adopted_and_is_the_true_pose():
 
 
 def test_a_quarter_turn_of_a_box_without_a_handle_is_corrected_when_its_two_tones_show_it():
-    score = _gate(with_handle=False, pose_error_deg=90.0)
+    score = _gate(with_handle=False, pose_error_deg=90.0, cfg=ADOPT)
     assert score.transform is not None and score.best_turn_deg == pytest.approx(90.0)
 
 
@@ -160,11 +161,11 @@ def test_colour_fit_undoes_a_per_channel_gain_but_cannot_flatten_a_prediction_to
 
 
 def test_verdicts_follow_the_margins():
-    cfg = ReplacementGateConfig(margin_own_db=3.0, margin_turn_db=0.5)
+    cfg = ReplacementGateConfig(margin_own_db=3.0, margin_turn_db=0.5, adopt_turns=True)
     assert judge(30.0, 27.5, 27.9, cfg)[0]
     assert not judge(30.0, 26.5, None, cfg)[0]
     assert judge(30.0, 28.0, 28.6, cfg)[0]  # the better turn is adopted
-    assert not judge(30.0, 28.0, 28.6, ReplacementGateConfig(adopt_turns=False))[0]
+    assert not judge(30.0, 28.0, 28.6, ReplacementGateConfig(margin_own_db=3.0, adopt_turns=False))[0]
     assert not judge(30.0, 25.0, 26.0, cfg)[0]  # the better turn fails the own margin too
     assert judge(None, None, None, cfg)[0]
     with pytest.raises(ValueError):

@@ -91,9 +91,9 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     (geometric backend of ``splatreplace masks``, written into the dataset folder)."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     gate: ReplacementGateConfig = field(default_factory=ReplacementGateConfig)
-    """Before an instance is replaced, its registered pose is checked against its training images; a pose that
-    explains them clearly worse than the instance itself, or worse than the same pose turned, leaves the
-    instance as it is."""
+    """With ``--pipeline.gate.enabled True``, before an instance is replaced its registered pose is checked against
+    its training images; a pose that explains them clearly worse than the instance itself, or worse than the same
+    pose turned, leaves the instance as it is."""
 
     @property
     def total_iterations(self) -> int:
@@ -652,6 +652,7 @@ class SplatReplacePipeline(VanillaPipeline):
             entry["gate"] = score.as_dict()
             if score.passed and score.transform is not None:
                 transforms[iid] = torch.tensor(score.transform, dtype=torch.float32)
+                entry["registered_transform"] = entry["transform"]  # kept for scoring the registration itself
                 entry["transform"] = score.transform
                 entry["message"] = f"instance {iid}: {score.reason}"
                 CONSOLE.log(entry["message"])

@@ -44,11 +44,12 @@ the scene's background, extra features rendered [H, W, D]."""
 class ReplacementGateConfig:
     """Settings of :func:`gate_registrations`."""
 
-    enabled: bool = True
-    """Check every registered pose against the training images before the instance is replaced."""
-    margin_own_db: float = 3.0
+    enabled: bool = False
+    """Check every registered pose against the training images before the instance is replaced (off by default:
+    on the dev split it has not paid yet, see docs/deviations.md)."""
+    margin_own_db: float = 6.0
     """dB: the template copy under the registered pose may explain the instance's training pixels this much
-    worse than its own Gaussians before the instance is refused."""
+    worse than its own Gaussians (which were fitted to exactly those pixels) before the instance is refused."""
     margin_turn_db: float = 0.5
     """dB: a turned pose must explain the pixels this much better than the registered one to refuse it."""
     turns: int = 8
@@ -57,7 +58,7 @@ class ReplacementGateConfig:
     """Training views compared per instance (those where it covers most pixels)."""
     min_pixels: int = 16
     """A view counts only where the instance covers at least this many pixels."""
-    adopt_turns: bool = True
+    adopt_turns: bool = False
     """When a turned pose explains the pixels clearly better and passes the own margin, replace the instance
     under that pose instead of leaving it as it is."""
     icp_distance: float = 0.1
