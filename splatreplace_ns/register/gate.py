@@ -273,7 +273,7 @@ def gate_registrations(
             footprint = id_maps[v] == i
             for _, weight in renders:
                 footprint = footprint | (weight[..., 0] >= 0.5)
-            target = images[v]
+            target = images[v][..., :3]  # an RGBA capture's alpha is not compared
             target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
             target_px.append(target[footprint])
             own_px.append(rgb_before[v][footprint].float())
