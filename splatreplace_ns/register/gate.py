@@ -31,6 +31,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from splatreplace_ns.masks.render import labels_from_weights, one_hot_labels
 from splatreplace_ns.template.build import transform_gaussians
 
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "logit_opacities", "sh")
@@ -201,13 +202,12 @@ def instance_id_maps(scene: Mapping[str, Tensor], labels: Tensor, views: Sequenc
     """
     ids = sorted(set(labels.unique().tolist()) - {0})
     table = torch.tensor([0] + ids, dtype=torch.long, device=labels.device)
-    dense = torch.searchsorted(table, labels)
-    one_hot = torch.nn.functional.one_hot(dense, len(ids) + 1).to(scene["means"].dtype)
+    one_hot = one_hot_labels(torch.searchsorted(table, labels), len(ids)).to(scene["means"].dtype)
     rgbs, id_maps = {}, {}
     for v in views:
         rgb, weights = render(v, dict(scene), one_hot)
-        best, winner = weights.max(dim=-1)
-        id_maps[v] = torch.where(best >= 0.5, table.to(winner.device)[winner], torch.zeros_like(winner))
+        dense = labels_from_weights(weights, 0.5)
+        id_maps[v] = table.to(dense.device)[dense]
         rgbs[v] = rgb
     return rgbs, id_maps
 
