@@ -196,8 +196,8 @@ class MaskClickControls(ClickControls):
         closed_status: str = "clicking opens when the base model is trained",
     ):
         connected = to_click is not None and validate is not None
-        super().__init__("Click an instance", "Undo last click", "Write masks", "Clicks", "Status",
-                         "press 'Click an instance', then click it" if connected else closed_status)
+        super().__init__("Click each instance", "Click an instance", "Undo last click", "Write masks", "Clicks",
+                         "Status", "press 'Click an instance', then click it" if connected else closed_status)
         self._closed_status = closed_status
         self._to_click = to_click
         self._validate = validate

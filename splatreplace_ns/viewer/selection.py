@@ -25,8 +25,8 @@ class InstanceSelectionControls(ClickControls):
     """The segmentation stage's click controls; the pipeline's selection does the work."""
 
     def __init__(self, pipeline: "SplatReplacePipeline"):
-        super().__init__("Select instances", "Undo last instance", "Confirm instances", "Instances", "Selection status",
-                         "waits for the segmentation stage")
+        super().__init__("Instance selection", "Select instances", "Undo last instance", "Confirm instances",
+                         "Instances", "Selection status", "waits for the segmentation stage")
         self._pipeline = [pipeline]  # a list keeps the pipeline out of this module's children
 
     @property
