@@ -131,9 +131,10 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
         cfg = pipeline.config.segmentation
         dataset = pipeline.datamanager.eval_dataset if dataset is None else dataset
         preds, gts = [], []
+        features_of_gaussians = selection.gaussian_features()  # contrastive features, or voted labels (lift voting)
         for idx in range(len(dataset)):
             camera = dataset.cameras[idx : idx + 1].to(pipeline.device)
-            features, alpha, _ = model.render_features(camera)
+            features, alpha, _ = model.render_features(camera, features_of_gaussians)
             preds.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha).cpu())
             if reference_scene is None:
                 gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
