@@ -123,6 +123,8 @@ class ClickControls(nn.Module):
                 client.camera.position = position
                 client.camera.look_at = position + rotation[:, 2]
                 client.camera.up_direction = -rotation[:, 1]
+            client.flush()  # sent now, ahead of the status line below (which goes to every viewer on its own)
+        self._say(f"the view looks through {name}: press '{self.arm_button.name}', then click what it shows")
 
     @property
     def viewer_running(self) -> bool:
