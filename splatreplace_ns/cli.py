@@ -14,6 +14,7 @@ warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", c
 import tyro
 from typing_extensions import Annotated
 
+from splatreplace_ns.bench.capture import BenchCaptureConfig
 from splatreplace_ns.bench.masks import BenchMasksConfig
 from splatreplace_ns.bench.register import BenchRegisterConfig
 from splatreplace_ns.bench.render import BenchRenderConfig
@@ -37,6 +38,7 @@ BenchCommands = Union[
     Annotated[BenchMasksConfig, tyro.conf.subcommand("masks")],
     Annotated[BenchTradeoffConfig, tyro.conf.subcommand("tradeoff")],
     Annotated[BenchSuiteConfig, tyro.conf.subcommand("suite")],
+    Annotated[BenchCaptureConfig, tyro.conf.subcommand("capture")],
 ]
 
 
