@@ -17,16 +17,24 @@ its bounding-box diagonal from it (inside: :func:`splatreplace_ns.sim.geometry.c
 given per instance after carving. ``miou_gt_labels`` (test views) and ``miou_gt_labels_train`` are the
 ceiling of the reconstruction: its Gaussians labelled by a vote of the ground-truth training masks and
 rendered the same way.
+
+``--compare-lifts`` compares the two ways of lifting the 2D instance masks to the Gaussians instead, on the same base
+model of each scene (random dev scenes of ``--seeds``, presets of ``--lift-presets``): the voting lift
+(``segment.voting``: each Gaussian takes the mask label with most of its blending weight over the training views)
+scored right after the base stage, and the contrastive stage scored after each of ``--lift-contrastive-steps``.
+Both are scored as above (test-view masks rendered from the selection of the scene's clicks, τ and min_alpha of
+the segmentation config) and timed: the vote, or the contrastive training steps. One JSON for all the scenes.
 """
 
 from __future__ import annotations
 
 import os
 import platform
+import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -67,10 +75,27 @@ class BenchSegmentConfig:
     """torch threads (1 lets two benchmarks share a two-core machine)."""
     gt_depth_tolerance: float = 0.05
     """Visibility margin of the ground-truth vote that labels the Gaussians for the ceiling (as in bench register)."""
+    compare_lifts: bool = False
+    """Compare the voting lift with the contrastive stage (mIoU on the test views, seconds of each) on the scenes of
+    --seeds and --lift-presets, instead of the preset's segmentation run (uses --res, --n-train, --n-test,
+    --base-iterations)."""
+    seeds: Tuple[int, ...] = (0, 1, 2, 3)
+    """--compare-lifts: random dev scenes (``splatreplace sim random --seed K``; cached under DATA_ROOT/suite)."""
+    lift_presets: Tuple[str, ...] = ()
+    """--compare-lifts: named presets too."""
+    lift_contrastive_steps: Tuple[int, ...] = (500, 1000)
+    """--compare-lifts: contrastive iterations after which the contrastive lift is scored (the last is the stage's
+    length)."""
+    vote_min_shares: Tuple[float, ...] = (0.0, 0.5)
+    """--compare-lifts: the voting lift's --pipeline.segmentation.vote-min-share values scored (one vote)."""
 
     def main(self) -> Dict:
-        result = run_segment_bench(self)
-        print_table(result)
+        if self.compare_lifts:
+            result = run_lift_bench(self)
+            print_lift_table(result)
+        else:
+            result = run_segment_bench(self)
+            print_table(result)
         write_result_json(result, self.json)
         return result
 
@@ -262,3 +287,151 @@ def print_table(result: Dict) -> None:
     )
     Console().print(table)
     Console().print("time per stage (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["time_s"].items()))
+
+
+# ---------------------------------------------------------------------------------------------- --compare-lifts
+def _lift_scene(cfg: BenchSegmentConfig, scene: str) -> Path:
+    from splatreplace_ns.bench.scenes import cached_scene
+    from splatreplace_ns.bench.suite import cached_random_scene
+
+    if scene.startswith("random_"):
+        return cached_random_scene(int(scene.split("_", 1)[1]), cfg.res, cfg.n_train, cfg.n_test, cfg.data_root / "suite")
+    return cached_scene(scene, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
+
+
+def _scores(scores: Dict) -> Dict:
+    return {"miou": scores["miou"], "macc": scores["macc"], "iou": scores["iou"], "failures": scores["failures"]}
+
+
+def score_voting_lift(pipeline, clicks: Path, min_shares: Tuple[float, ...]) -> Dict:
+    """Votes the training masks onto the pipeline's current Gaussians and scores the test views for each minimum
+    share; the pipeline is left on the contrastive lift, without votes. Returns {"time_s", "share_<s>": scores}."""
+    from splatreplace_ns.segment.voting import Votes, labels_from_votes
+
+    seg = pipeline.config.segmentation
+    lift, min_share = seg.lift, seg.vote_min_share
+    seg.lift, seg.vote_min_share, pipeline._lift_votes = "voting", 0.0, None
+    try:
+        votes = pipeline.lift_votes()
+        out: Dict = {"time_s": pipeline.votes_time_s, "views": votes.views,
+                     "unlabelled_share": float((votes.weights.sum(-1) <= 0).float().mean())}
+        for share in min_shares:
+            pipeline._lift_votes = Votes(labels_from_votes(votes.weights, share), votes.weights, votes.views)
+            out[f"share_{share:g}"] = _scores(score_views_from_clicks(pipeline, clicks))
+        return out
+    finally:
+        seg.lift, seg.vote_min_share, pipeline._lift_votes = lift, min_share, None
+
+
+def _lift_run(cfg: BenchSegmentConfig, scene: str) -> Dict:
+    import json
+
+    from splatreplace_ns.method.train import make_trainer_config, setup_trainer
+
+    t0 = time.perf_counter()
+    data = _lift_scene(cfg, scene)
+    sim_s = time.perf_counter() - t0
+    B, steps = cfg.base_iterations, sorted(set(cfg.lift_contrastive_steps))
+    config = make_trainer_config(data, cfg.out_dir / "lifts", B, steps[-1], experiment_name=data.name)
+    config.pipeline.model.num_downscales = 0
+    trainer = setup_trainer(config)
+    pipeline = trainer.pipeline
+    clicks = data / "clicks.json"
+    row: Dict = {"scene": scene, "data": data.name, "instances": len(json.loads(clicks.read_text())),
+                 "contrastive": {}, "time_s": {"sim": sim_s}}
+    marks: Dict[str, float] = {}
+
+    def probe(step: int) -> None:  # before the pipeline's own callback (segmentation at the stage's last step)
+        if step == B - 1:
+            row["time_s"]["base"] = time.perf_counter() - marks["start"]
+            row["voting"] = score_voting_lift(pipeline, clicks, cfg.vote_min_shares)
+            marks["contrastive_start"] = time.perf_counter()
+        elif step - B + 1 in steps:
+            trained = time.perf_counter() - marks["contrastive_start"]
+            t = time.perf_counter()
+            row["contrastive"][str(step - B + 1)] = {**_scores(score_views_from_clicks(pipeline, clicks)),
+                                                     "time_s": trained}
+            marks["contrastive_start"] += time.perf_counter() - t  # scoring is not training time
+
+    trainer.callbacks.insert(0, TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], probe))
+    marks["start"] = time.perf_counter()
+    trainer.train()
+    row["time_s"]["total"] = time.perf_counter() - t0
+    row["gaussians"] = pipeline.model.num_points
+    return row
+
+
+def _spread(values: List[float]) -> Dict:
+    values = [float(v) for v in values]
+    return {"mean": statistics.fmean(values), "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+            "min": min(values), "max": max(values), "n": len(values)}
+
+
+def run_lift_bench(cfg: BenchSegmentConfig) -> Dict:
+    """The voting lift against the contrastive stage on every scene; per-scene rows and mean ± std over them."""
+    import nerfstudio
+
+    torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
+    scenes = [f"random_{seed}" for seed in cfg.seeds] + list(cfg.lift_presets)
+    rows = []
+    for scene in scenes:
+        rows.append(_lift_run(cfg, scene))
+        print(f"{scene}: voting mIoU {rows[-1]['voting'][f'share_{cfg.vote_min_shares[0]:g}']['miou']:.4f}, "
+              + ", ".join(f"contrastive@{k} {v['miou']:.4f}" for k, v in rows[-1]["contrastive"].items()))
+    summary: Dict = {}
+    for share in cfg.vote_min_shares:
+        key = f"share_{share:g}"
+        summary[f"voting_{key}"] = {"miou": _spread([r["voting"][key]["miou"] for r in rows]),
+                                    "time_s": _spread([r["voting"]["time_s"] for r in rows])}
+    for steps in rows[0]["contrastive"]:
+        summary[f"contrastive_{steps}"] = {"miou": _spread([r["contrastive"][steps]["miou"] for r in rows]),
+                                           "time_s": _spread([r["contrastive"][steps]["time_s"] for r in rows])}
+    return {
+        "benchmark": "segment_lift",
+        "definition": ("mIoU over the instances of the test views' masks rendered from the clicks' selection "
+                       "(eval.segmentation.score_views_from_clicks); time_s: the vote over the training views "
+                       "(voting) or the contrastive training steps (contrastive), on the same base model"),
+        "scenes": rows,
+        "summary": summary,
+        "parameters": {
+            "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+            "contrastive_steps": sorted(set(cfg.lift_contrastive_steps)), "vote_min_shares": list(cfg.vote_min_shares),
+            "seeds": list(cfg.seeds), "presets": list(cfg.lift_presets), "threads": torch.get_num_threads(),
+        },
+        "machine": {
+            "platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
+            "nerfstudio": nerfstudio.__version__ if hasattr(nerfstudio, "__version__") else "1.1.5",
+            "device": "cuda" if torch.cuda.is_available() else "cpu",
+        },
+    }
+
+
+def print_lift_table(result: Dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    p = result["parameters"]
+    table = Table(title=f"voting lift vs contrastive stage: test-view mIoU and seconds ({p['res']}, {p['n_train']} "
+                        f"train / {p['n_test']} test views, base {p['base_iterations']} it., {p['threads']} threads)")
+    table.add_column("scene")
+    table.add_column("inst.")
+    columns = [(f"voting_share_{s:g}", "voting" + (f" (share > {s:g})" if s else ""),
+                lambda r, s=s: (r["voting"][f"share_{s:g}"]["miou"], r["voting"]["time_s"])) for s in p["vote_min_shares"]]
+    columns += [(f"contrastive_{k}", f"contrastive {k} it.",
+                 lambda r, k=str(k): (r["contrastive"][k]["miou"], r["contrastive"][k]["time_s"]))
+                for k in p["contrastive_steps"]]
+    for _, title, _ in columns:
+        table.add_column(f"{title} mIoU")
+        table.add_column("s")
+    for row in result["scenes"]:
+        cells = [row["scene"], str(row["instances"])]
+        for _, _, get in columns:
+            miou, seconds = get(row)
+            cells += [f"{miou:.3f}", f"{seconds:.1f}"]
+        table.add_row(*cells)
+    cells = ["mean ± std", ""]
+    for key, _, _ in columns:
+        s = result["summary"][key]
+        cells += [f"{s['miou']['mean']:.3f} ± {s['miou']['std']:.3f}", f"{s['time_s']['mean']:.1f} ± {s['time_s']['std']:.1f}"]
+    table.add_row(*cells)
+    Console().print(table)
