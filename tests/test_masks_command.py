@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from splatreplace_ns.datamanager.click_masks import read_dataset_meta
 from splatreplace_ns.masks.capture import strip_ground_truth
 from splatreplace_ns.masks.command import MasksCommand, make_masks
 from splatreplace_ns.datamanager.errors import DatasetFormatError
@@ -26,7 +27,7 @@ from scenes import (
 def mask_iou(scene, capture) -> list:
     """IoU per instance of the written masks against the ground truth, over every frame."""
     gt_meta = json.loads((scene / "transforms.json").read_text())
-    ours_meta = json.loads((capture / "transforms.json").read_text())
+    ours_meta = read_dataset_meta(capture)
     clicks = json.loads((scene / "clicks.json").read_text())
     gt = np.stack([cv2.imread(str(scene / f["instance_mask_path"]), -1) for f in gt_meta["frames"]])
     ours = np.stack([cv2.imread(str(capture / f["instance_mask_path"]), -1) for f in ours_meta["frames"]])
@@ -44,17 +45,19 @@ def base_run(tmp_path_factory):
     make_scene("tiny", scene, n_train=12)
     capture = root / "capture"
     strip_ground_truth(scene, capture)
+    shutil.copy2(capture / "transforms.json", root / "given_transforms.json")
     report = make_masks(MasksCommand(capture, base_iterations=300, output_dir=root / "runs"))
     return scene, capture, report
 
 
 def test_masks_for_every_frame_match_the_ground_truth(base_run):
     scene, capture, report = base_run
-    meta = json.loads((capture / "transforms.json").read_text())
-    assert all(f["instance_mask_path"] == f"masks/{i:04d}.png" for i, f in enumerate(meta["frames"]))
+    meta = read_dataset_meta(capture)
+    assert all(f["instance_mask_path"] == f"instance_masks/{i:04d}.png" for i, f in enumerate(meta["frames"]))
     assert meta["instances"] == [{"id": k, "class": "crate"} for k in (1, 2, 3)]
-    assert (capture / "transforms.json.before-masks").exists()
-    assert "instances" not in json.loads((capture / "transforms.json.before-masks").read_text())
+    # the user's transforms.json is left as it was: the masks and their index are beside it
+    assert (capture / "transforms.json").read_bytes() == (capture.parent / "given_transforms.json").read_bytes()
+    assert not (capture / "masks").exists() and (capture / "instance_masks" / "index.json").exists()
     for frame in meta["frames"]:
         mask = cv2.imread(str(capture / frame["instance_mask_path"]), cv2.IMREAD_UNCHANGED)
         assert mask.dtype == np.uint16 and mask.shape == (48, 64)
@@ -70,8 +73,8 @@ def test_a_capture_without_a_split_trains_the_masks_base_on_every_frame(base_run
 
     scene, capture, _ = base_run
     data = tmp_path / "capture"
-    shutil.copytree(capture, data, ignore=shutil.ignore_patterns("masks", "transforms.json"))
-    meta = json.loads((capture / "transforms.json.before-masks").read_text())
+    shutil.copytree(capture, data, ignore=shutil.ignore_patterns("instance_masks", "transforms.json"))
+    meta = json.loads((capture / "transforms.json").read_text())
     for key in ("train_filenames", "val_filenames", "test_filenames"):
         meta.pop(key, None)
     (data / "transforms.json").write_text(json.dumps(meta))
@@ -89,7 +92,7 @@ def test_the_masks_ceiling_renders_each_gaussian_with_its_ground_truth_label(bas
 
     scene, capture, report = base_run
     masks, file_paths = oracle_masks(Path(report["config"]), capture, scene)
-    meta = json.loads((capture / "transforms.json").read_text())
+    meta = read_dataset_meta(capture)
     assert file_paths == [f["file_path"] for f in meta["frames"]] and masks.shape == (len(file_paths), 48, 64)
     ceiling = score_arrays(masks, scene, file_paths, 2)
     ours = score_masks(scene, capture, 2)
@@ -105,7 +108,7 @@ def test_rerun_with_the_saved_base_gives_the_same_bytes(base_run, tmp_path):
     copy = tmp_path / "again"
     shutil.copytree(capture, copy)
     make_masks(MasksCommand(copy, load_config=report["config"]))
-    for path in sorted(capture.glob("masks/*.png")) + [capture / "transforms.json"]:
+    for path in sorted(capture.glob("instance_masks/*")) + [capture / "transforms.json"]:
         assert (copy / path.relative_to(capture)).read_bytes() == path.read_bytes(), path.name
 
 
@@ -175,7 +178,7 @@ def test_skip_bad_clicks_makes_the_other_masks_and_keeps_their_ids(base_run, tmp
     path.write_text(json.dumps([dict(clicks[0], xy=[1, 1])] + clicks[1:]))  # click 0 on the wall, no crate
     skipped = make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
     assert len(skipped["skipped_clicks"]) == 1 and skipped["skipped_clicks"][0].startswith("click 0 (images/")
-    meta = json.loads((data / "transforms.json").read_text())
+    meta = read_dataset_meta(data)
     assert meta["instances"] == [{"id": k, "class": "crate"} for k in (2, 3)]
     # crates 2 and 3 get the same masks as when every click worked; id 1 is nowhere
     for frame in meta["frames"]:
@@ -388,9 +391,9 @@ def test_ns_train_makes_the_masks_of_a_colmap_capture(tmp_path):
     report = trainer.pipeline.masks_report
     assert [inst["id"] for inst in report["instances"]] == [1, 2, 3] and report["frames"] == 16
     assert seen == {"has_masks": True, "ids": {0, 1, 2, 3}}
-    meta = json.loads((capture / "transforms.json").read_text())
+    meta = read_dataset_meta(capture)
     assert meta["instances"] == [{"id": k, "class": "crate"} for k in (1, 2, 3)]
-    assert "instances" not in json.loads((capture / "transforms.json.before-masks").read_text())
+    assert "instances" not in json.loads((capture / "transforms.json").read_text())  # written beside it
     ious = mask_iou(scene, capture)
     assert min(ious) > 0.3 and np.mean(ious) > 0.45, ious  # as good as `splatreplace masks` at this budget
     assert trainer.pipeline.segmentation_report["instances"]
@@ -493,7 +496,7 @@ def test_ns_train_makes_the_masks_of_a_capture_it_reads_downscaled(tmp_path):
 
     assert [inst["id"] for inst in trainer.pipeline.masks_report["instances"]] == [1, 2, 3]
     gt_meta = json.loads((scene / "transforms.json").read_text())
-    ours_meta = json.loads((capture / "transforms.json").read_text())
+    ours_meta = read_dataset_meta(capture)
     ours = np.stack([cv2.imread(str(capture / f["instance_mask_path"]), -1) for f in ours_meta["frames"]])
     assert ours.shape[1:] == (48, 64)  # the size the images are trained at
     gt = np.stack([cv2.resize(cv2.imread(str(scene / f["instance_mask_path"]), -1), (64, 48), interpolation=cv2.INTER_NEAREST)
@@ -542,7 +545,7 @@ def test_masks_made_from_other_clicks_are_made_again(base_run, tmp_path):
     scene, capture, report = base_run
     data = tmp_path / "capture"
     shutil.copytree(capture, data)
-    meta = json.loads((data / "transforms.json").read_text())
+    meta = read_dataset_meta(data)
     assert meta["instance_masks_clicks"] == clicks_digest(load_clicks(data / "clicks.json"))
     assert not setup_trainer(make_trainer_config(data, tmp_path / "runs", 10, 10)).pipeline._masks_stale
     clicks = json.loads((data / "clicks.json").read_text())

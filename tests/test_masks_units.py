@@ -16,7 +16,9 @@ from splatreplace_ns.masks.lifting import (
     ClickError, LiftedClick, frames_holding, lift_click, lift_pixel, project_points, visible_by_depth,
 )
 from splatreplace_ns.masks.render import distort_map, grabcut_instance, labels_from_weights
-from splatreplace_ns.masks.writer import BACKUP_SUFFIX, write_dataset_masks
+from splatreplace_ns.masks.writer import write_dataset_masks
+from splatreplace_ns.datamanager.click_masks import with_click_masks
+from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.register.virtual_cameras import look_at
 
 K = torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -557,23 +559,45 @@ def test_boundary_f_is_one_on_identical_masks_and_drops_with_a_shift():
     assert boundary_f_score(shifted, gt, {3: 3}, tolerance=2)["boundary_f"] < 0.7
 
 
-def test_writer_keeps_a_backup_and_rewrites_the_same_bytes(tmp_path):
+def test_writer_leaves_transforms_as_it_was_and_rewrites_the_same_bytes(tmp_path):
     meta = {"camera_model": "PINHOLE", "frames": [{"file_path": "images/a.png"}, {"file_path": "images/b.png"}]}
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     original = (tmp_path / "transforms.json").read_bytes()
     masks = [np.full((4, 5), 1, np.uint16), np.arange(20, dtype=np.uint16).reshape(4, 5) % 3]
     instances = [{"id": 1, "class": "crate"}, {"id": 2, "class": "crate"}]
-    write_dataset_masks(tmp_path, masks, instances)
-    first = (tmp_path / "transforms.json").read_bytes()
-    written = json.loads(first)
-    assert [f["instance_mask_path"] for f in written["frames"]] == ["masks/0000.png", "masks/0001.png"]
-    assert written["instances"] == instances
-    back = cv2.imread(str(tmp_path / "masks/0001.png"), cv2.IMREAD_UNCHANGED)
+    index = write_dataset_masks(tmp_path, masks, instances, "digest")
+    assert (tmp_path / "transforms.json").read_bytes() == original
+    first = index.read_bytes()
+    seen = with_click_masks(meta, tmp_path)
+    assert [f["instance_mask_path"] for f in seen["frames"]] == ["instance_masks/0000.png", "instance_masks/0001.png"]
+    assert seen["instances"] == instances and seen["instance_masks_source"] == "clicks"
+    assert seen["instance_masks_clicks"] == "digest" and "instances" not in meta  # meta itself untouched
+    back = cv2.imread(str(tmp_path / "instance_masks/0001.png"), cv2.IMREAD_UNCHANGED)
     assert back.dtype == np.uint16 and np.array_equal(back, masks[1])
-    write_dataset_masks(tmp_path, masks, instances)
-    assert (tmp_path / "transforms.json").read_bytes() == first
-    assert (tmp_path / ("transforms.json" + BACKUP_SUFFIX)).read_bytes() == original
+    write_dataset_masks(tmp_path, masks, instances, "digest")
+    assert index.read_bytes() == first
     assert not list(tmp_path.rglob(".*.tmp"))
+
+
+def test_click_masks_never_override_given_masks_and_follow_the_frames(tmp_path):
+    """Masks given in transforms.json win over the index; an index that misses a frame of transforms.json (the
+    file changed since) is not used, so the masks are made again; a listed mask that is gone is named."""
+    frames = [{"file_path": "images/a.png"}, {"file_path": "images/b.png"}]
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": frames}))
+    write_dataset_masks(tmp_path, [np.ones((4, 5), np.uint16)] * 2, [{"id": 1, "class": "crate"}])
+    given = {"frames": [dict(f, instance_mask_path=f"masks/{i}.png") for i, f in enumerate(frames)]}
+    assert with_click_masks(given, tmp_path) is given
+    # masks an earlier version wrote into transforms.json (source "clicks") give way to the index
+    legacy = dict(given, instance_masks_source="clicks")
+    assert with_click_masks(legacy, tmp_path)["frames"][0]["instance_mask_path"] == "instance_masks/0000.png"
+    grown = {"frames": frames + [{"file_path": "images/c.png"}]}
+    assert with_click_masks(grown, tmp_path) is grown
+    (tmp_path / "instance_masks/0001.png").unlink()
+    with pytest.raises(DatasetFormatError, match=r"0001\.png: instance mask listed in .*index\.json not found"):
+        with_click_masks({"frames": frames}, tmp_path)
+    (tmp_path / "instance_masks/index.json").write_text("{")
+    with pytest.raises(DatasetFormatError, match=r"index\.json: not valid JSON"):
+        with_click_masks({"frames": frames}, tmp_path)
 
 
 def test_colmap_export_and_import_round_trip(tmp_path):

@@ -194,3 +194,49 @@ def test_ns_train_with_the_voting_lift_selects_the_clicked_instances(tmp_path):
         iou = float((a & b).sum()) / float((a | b).sum())
         print(f"instance {k}: {share:.2f} of its Gaussians on object {click['id']}, mask IoU {iou:.2f}")
         assert share > 0.5 and iou > 0.5, (k, share, iou)
+
+
+def test_votes_from_known_labels_put_all_weight_on_each_label():
+    from splatreplace_ns.segment.voting import votes_from_labels
+
+    votes = votes_from_labels(torch.tensor([0, 2, 1, 2, 7]), 2)  # 7: beyond the largest label, clamped to it
+    assert votes.labels.tolist() == [0, 2, 1, 2, 2] and votes.views == 0
+    assert votes.weights.shape == (5, 3) and torch.equal(votes.weights.sum(-1), torch.ones(5))
+    assert torch.equal(labels_from_votes(votes.weights), votes.labels) and torch.equal(votes.share, torch.ones(5))
+
+
+def test_a_capture_without_masks_selects_the_masks_step_instances_without_a_round_trip(tmp_path):
+    """Photos and clicks only: the masks step gives every Gaussian its instance id, and with the voting lift the
+    clicks' instances are those ids as they are (no vote over the rendered masks, no contrastive stage); the user's
+    transforms.json is left byte for byte as it was."""
+    from splatreplace_ns.bench.segment import leftovers_by_instance
+    from splatreplace_ns.masks.capture import strip_ground_truth
+    from splatreplace_ns.method.train import make_trainer_config, run_training
+    from splatreplace_ns.sim import make_scene
+
+    scene = tmp_path / "scene"
+    make_scene("tiny", scene, n_train=12)
+    capture = tmp_path / "capture"
+    strip_ground_truth(scene, capture)
+    given = (capture / "transforms.json").read_bytes()
+    config = make_trainer_config(capture, tmp_path / "runs", 300, contrastive_iterations=1)
+    config.pipeline.segmentation.lift = "voting"
+    config.max_num_iterations = config.pipeline.total_iterations
+    pipeline = run_training(config).pipeline
+    assert (capture / "transforms.json").read_bytes() == given
+    assert (capture / "instance_masks" / "index.json").exists()
+    assert pipeline.segmentation_report["vote_views"] == 0  # the masks step's ids, not a vote over rendered masks
+    model = pipeline.model
+    clicks = json.loads((scene / "clicks.json").read_text())
+    assert [(i["id"], i["class"]) for i in model.instances] == [(k, c["class"]) for k, c in enumerate(clicks, start=1)]
+    instances = json.loads((scene / "transforms.json").read_text())["instances"]
+    truth = pipeline.datamanager.train_dataparser_outputs  # the capture has no truth: map the scene's by the same frame
+    from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParser
+
+    gt = SplatReplaceDataParser._instances({"instances": instances}, truth, scene)
+    for k, click in enumerate(clicks, start=1):
+        mine = model.means.detach().cpu()[model.instance_labels == k]
+        assert mine.shape[0] > 10, (k, mine.shape)
+        on_object = leftovers_by_instance(mine, torch.zeros(mine.shape[0], dtype=torch.long), gt)
+        share = float(on_object[click["id"]].float().mean())
+        assert share > 0.5, (k, share)

@@ -29,6 +29,7 @@ import torch
 
 from splatreplace_ns.eval.segmentation import ground_truth_masks_by_name, score_views_from_clicks, segmentation_scores
 from splatreplace_ns.masks.base import BaseFrames
+from splatreplace_ns.datamanager.click_masks import MASKS_DIR, read_dataset_meta
 from splatreplace_ns.masks.capture import strip_ground_truth
 from splatreplace_ns.masks.clustering import ClusteringConfig
 from splatreplace_ns.bench.output import write_result_json
@@ -134,7 +135,7 @@ def read_masks(data: Path, frames: List[Dict]) -> np.ndarray:
 
 def score_masks(scene: Path, capture: Path, tolerance: int) -> Dict:
     """mIoU and boundary F of a capture's written masks against the scene's ground truth (every frame)."""
-    ours_meta = json.loads((capture / "transforms.json").read_text())
+    ours_meta = read_dataset_meta(capture)
     return score_arrays(read_masks(capture, ours_meta["frames"]), scene, [f["file_path"] for f in ours_meta["frames"]],
                         tolerance)
 
@@ -212,10 +213,10 @@ def with_ground_truth_masks(scene: Path, capture: Path, out: Path) -> Path:
     """A copy of the capture whose masks and instances are the scene's ground truth (the reference run)."""
     if out.exists():
         shutil.rmtree(out)
-    shutil.copytree(capture, out, ignore=shutil.ignore_patterns("masks", "transforms.json*"))
+    shutil.copytree(capture, out, ignore=shutil.ignore_patterns("masks", MASKS_DIR, "transforms.json*"))
     shutil.copytree(scene / "masks", out / "masks")
     gt_meta = json.loads((scene / "transforms.json").read_text())
-    meta = json.loads((capture / "transforms.json.before-masks").read_text())
+    meta = json.loads((capture / "transforms.json").read_text())  # as the user gave it: masks are beside it
     for frame, gt_frame in zip(meta["frames"], gt_meta["frames"]):
         frame["instance_mask_path"] = gt_frame["instance_mask_path"]
     clicks = json.loads((scene / "clicks.json").read_text())

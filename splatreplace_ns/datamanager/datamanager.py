@@ -12,6 +12,7 @@ from nerfstudio.cameras.cameras import Cameras
 
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 
+from splatreplace_ns.datamanager.click_masks import with_click_masks
 from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParser, SplatReplaceDataParserConfig
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
 from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, remap_nearest, undistortion_maps
@@ -100,11 +101,11 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         )
 
     def reload_instance_masks(self) -> None:
-        """Points the datasets at the masks that ``transforms.json`` now lists (written during this run, after
-        the base stage) and puts them into the images already cached."""
+        """Points the datasets at the masks written beside ``transforms.json`` during this run (after the base
+        stage, ``instance_masks/``) and puts them into the images already cached."""
         transforms = self.dataparser.config.data
         transforms = transforms if transforms.suffix == ".json" else transforms / "transforms.json"
-        meta = json.loads(transforms.read_text())
+        meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
         for split, dataset in (("train", self.train_dataset), ("eval", self.eval_dataset)):
             outputs = dataset._dataparser_outputs
             filenames = SplatReplaceDataParser._instance_mask_filenames(meta, transforms.parent, outputs.image_filenames, transforms)

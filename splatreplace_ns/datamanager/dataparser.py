@@ -23,6 +23,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from splatreplace_ns.datamanager.click_masks import MASKS_SOURCE_KEY, with_click_masks
 from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.datamanager.validate import SPLIT_LISTS, check_transforms, read_json, with_both_eval_splits
 
@@ -122,6 +123,7 @@ class SplatReplaceDataParser(Nerfstudio):
                 "sparse/0)"
             )
         meta = check_transforms(read_json(transforms_path, "transforms.json"), transforms_path)
+        meta = with_click_masks(meta, transforms_path.parent)  # masks made from clicks live beside the file
         if "depth_unit_scale_factor" in meta:
             self.config.depth_unit_scale_factor = float(meta["depth_unit_scale_factor"])
         if self.config.train_on_every_frame:  # nerfstudio's parser obeys split lists before its eval_mode
@@ -146,7 +148,7 @@ class SplatReplaceDataParser(Nerfstudio):
     def _instance_masks_source(meta: Dict, transforms_path: Path) -> str:
         """Where the instance masks come from: ``"ground_truth"`` (default) or ``"clicks"`` (``splatreplace masks``
         or ``ns-train`` made them; evaluation then scores no segmentation against them)."""
-        value = meta.get("instance_masks_source", "ground_truth")
+        value = meta.get(MASKS_SOURCE_KEY, "ground_truth")
         if value not in ("ground_truth", "clicks"):
             raise DatasetFormatError(
                 f"{transforms_path}: 'instance_masks_source' is {value!r}; expected 'ground_truth' or 'clicks'"

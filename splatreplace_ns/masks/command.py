@@ -5,9 +5,9 @@ click made in nerfstudio's viewer with ``--viewer``, then written to clicks.json
 depth, finds the clicked instances in 3D (supporting planes removed, Gaussian centres clustered), renders
 every instance into every frame and cleans the borders (``geometric``), or prompts a SAM-style ONNX pair
 with the projected clicks and the instance's box (``onnx-sam``). Writes
-``masks/NNNN.png`` for every frame and the ``instance_mask_path`` / ``instances`` entries of
-``transforms.json`` (original kept as ``transforms.json.before-masks``). Every bad input is reported
-before anything is written.
+``instance_masks/NNNN.png`` for every frame and ``instance_masks/index.json`` (frames, instances, the clicks'
+fingerprint) beside ``transforms.json``, which is left as it was. Every bad input is reported before anything
+is written.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from splatreplace_ns.masks.viewer_clicks import (
     write_clicks_json,
 )
 from splatreplace_ns.masks.writer import write_dataset_masks
+from splatreplace_ns.datamanager.click_masks import index_path
 from splatreplace_ns.datamanager.validate import check_transforms, image_size, read_json
 from splatreplace_ns.segment.clicks import Click, check_clicks, clicks_digest, load_clicks
 
@@ -114,8 +115,8 @@ class MasksCommand:
         for message in report["sparse_instances"]:
             print(f"warning: {message}")
         print(
-            f"wrote {report['frames']} masks for {len(report['instances'])} instances to {self.data / 'masks'} "
-            f"and {self.data / 'transforms.json'} ({report['time_s']['masks']:.1f} s after the base stage; "
+            f"wrote {report['frames']} masks for {len(report['instances'])} instances and their index to "
+            f"{index_path(self.data).parent} ({report['time_s']['masks']:.1f} s after the base stage; "
             f"base run: {report['config']})"
         )
         return report
@@ -348,7 +349,8 @@ def masks_from_model(
 
     Returns:
         one [H, W] uint16 mask per frame (click k → id k + 1), ``[{"id", "class"}]`` of the instances, and a
-        report (``instances``, ``gaussians_per_instance``, ``skipped_clicks``).
+        report (``instances``, ``gaussians_per_instance``, ``skipped_clicks``, and ``gaussian_ids``: [N] int64
+        array, each Gaussian's instance id as in the masks, 0 = background).
 
     Raises:
         ClickError: a bad click (naming it), unless skipped.
@@ -383,6 +385,7 @@ def masks_from_model(
         "gaussians_per_instance": counts,
         "skipped_clicks": skipped,
         "sparse_instances": sparse_instances(counts, {i["id"]: i["class"] for i in instances}, cfg.sparse_fraction),
+        "gaussian_ids": click_id[np.asarray(instance_of_gaussian, dtype=np.int64)].astype(np.int64),
     }
     return masks, instances, report
 
@@ -446,6 +449,7 @@ def make_masks(cfg: MasksCommand) -> Dict:
         clicks = clicks_from_viewer(base, frames, cfg, renders, clustering)
         t0 += time.perf_counter() - viewer_start  # the time spent clicking is not the masks' time
     masks, instances, made = masks_from_model(model, frames, clicks, cfg, clustering, renders, sam)
+    made.pop("gaussian_ids")  # the command's output is the masks; ns-train keeps the ids (segmentation.lift voting)
     write_dataset_masks(data, masks, instances, clicks_digest(clicks))
     return {
         **made,

@@ -40,6 +40,8 @@ from splatreplace_ns.segment.clicks import Click, check_clicks, clicks_digest, c
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
+from splatreplace_ns.segment.voting import Votes, snap_query, vote_training_views, voted_features, votes_from_labels
+from splatreplace_ns.segment.voting import background_query as voting_background_query
 from splatreplace_ns.register.gate import ReplacementGateConfig, gate_registrations
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.rays import ray_camera
@@ -70,6 +72,13 @@ class SegmentationConfig:
     """Warn about an instance whose selected Gaussians cover less of its rendered masks than this: carving then
     removes the rest of it (tiny scene after 300 + 200 iterations: 2-7 %, and carving takes the training views'
     PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-88 %)."""
+    lift: Literal["contrastive", "voting"] = "contrastive"
+    """How the 2D instance masks become per-Gaussian instances. contrastive: train per-Gaussian features for
+    --pipeline.contrastive-iterations steps (paper §4.1); voting: no contrastive stage, each Gaussian takes the
+    mask label that gets most of its blending weight over the training views (``segment.voting``), right after
+    the base stage (contrastive-iterations > 0 still turns segmentation on). Measured in docs/benchmarks.md."""
+    vote_min_share: float = 0.0
+    """Voting lift: a Gaussian's winning label needs more than this share of its weight, else it stays background."""
 
 
 @dataclass
@@ -88,7 +97,7 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     masks: ClickMasksConfig = field(default_factory=ClickMasksConfig)
     """A capture without instance masks gets them from the clicks of clicks.json after the base stage
-    (geometric backend of ``splatreplace masks``, written into the dataset folder)."""
+    (geometric backend of ``splatreplace masks``, written to ``instance_masks/`` beside transforms.json)."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     gate: ReplacementGateConfig = field(default_factory=ReplacementGateConfig)
     """With ``--pipeline.gate.enabled True``, before an instance is replaced its registered pose is checked against
@@ -96,10 +105,15 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     pose turned, leaves the instance as it is."""
 
     @property
+    def contrastive_steps(self) -> int:
+        """Steps of the contrastive stage actually trained (none with the voting lift)."""
+        return 0 if self.segmentation.lift == "voting" else self.contrastive_iterations
+
+    @property
     def total_iterations(self) -> int:
         if self.contrastive_iterations <= 0:  # no segmentation, nothing to replace
             return self.base_iterations
-        return self.base_iterations + self.contrastive_iterations + self.finetune_iterations
+        return self.base_iterations + self.contrastive_steps + self.finetune_iterations
 
 
 class SplatReplacePipeline(VanillaPipeline):
@@ -115,6 +129,7 @@ class SplatReplacePipeline(VanillaPipeline):
         self.selection_controls = InstanceSelectionControls(self)
         self._train_lock = None  # the trainer's; held by the training thread through each step and its callbacks
         self._mask_clicks_from_viewer = False
+        self._click_instance_ids: Optional[torch.Tensor] = None  # [N] per-Gaussian ids from this run's masks step
         self._in_training_callback = False
         self._masks_stale = False
         if self.test_mode == "val" and self.config.contrastive_iterations > 0:
@@ -134,7 +149,7 @@ class SplatReplacePipeline(VanillaPipeline):
     def stage_at(self, step: int) -> str:
         if step < self.config.base_iterations:
             return "base"
-        if step < self.config.base_iterations + self.config.contrastive_iterations:
+        if step < self.config.base_iterations + self.config.contrastive_steps:
             return "contrastive"
         return "finetune" if self.model.has_templates else "segmented"
 
@@ -183,7 +198,7 @@ class SplatReplacePipeline(VanillaPipeline):
                     self.make_instance_masks(**self.mask_clicks_from_viewer())
                 else:
                     self.make_instance_masks()
-            if step == self.config.base_iterations + self.config.contrastive_iterations - 1:
+            if step == self.config.base_iterations + self.config.contrastive_steps - 1:
                 self.run_segmentation()
         finally:
             self._in_training_callback = False
@@ -203,13 +218,14 @@ class SplatReplacePipeline(VanillaPipeline):
         """Whether the dataset's masks were made (``splatreplace masks`` or an earlier run) from clicks other than
         those of clicks.json now: then they are made again after the base stage, or the contrastive stage would
         train on the old instances while the new clicks select."""
-        from splatreplace_ns.masks.writer import CLICKS_DIGEST_KEY
+        from splatreplace_ns.datamanager.click_masks import CLICKS_DIGEST_KEY, MASKS_SOURCE_KEY, with_click_masks
 
         if not self.datamanager.has_instance_masks or not self.clicks_path().exists():
             return False
-        meta = json.loads(self.transforms_path().read_text())
+        transforms = self.transforms_path()
+        meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
         made_from = meta.get(CLICKS_DIGEST_KEY)
-        if meta.get("instance_masks_source") != "clicks" or not made_from:
+        if meta.get(MASKS_SOURCE_KEY) != "clicks" or not made_from:
             return False
         if clicks_digest(load_clicks(self.clicks_path())) == made_from:
             return False
@@ -319,7 +335,7 @@ class SplatReplacePipeline(VanillaPipeline):
     @torch.no_grad()
     def make_instance_masks(self, renders=None, clustering=None) -> Dict:
         """Masks of every frame from the base model and the clicks (geometric backend of ``splatreplace masks``),
-        written into the dataset folder (original transforms.json kept as transforms.json.before-masks) and
+        written beside transforms.json (``instance_masks/``; transforms.json itself is not changed) and
         loaded into the datamanager, so that the contrastive stage trains on them. ``renders`` and
         ``clustering``: those the viewer's clicks were checked against, when they were made there."""
         from splatreplace_ns.masks.command import masks_from_model
@@ -335,6 +351,8 @@ class SplatReplacePipeline(VanillaPipeline):
             masks, instances, report = masks_from_model(self.model, frames, clicks, command, clustering, renders)
         finally:
             self.model.train(was_training)
+        # the masks step already gives every Gaussian its instance: the voting lift takes these ids as they are
+        self._click_instance_ids = torch.from_numpy(report.pop("gaussian_ids"))
         write_dataset_masks(transforms.parent, masks, instances, clicks_digest(clicks))
         self._masks_stale = False
         self.datamanager.reload_instance_masks()
@@ -344,7 +362,7 @@ class SplatReplacePipeline(VanillaPipeline):
             CONSOLE.log(f"[bold yellow]masks: {message}")
         self.masks_report = {**report, "frames": len(masks), "time_s": time.perf_counter() - start}
         CONSOLE.log(
-            f"[bold]masks: {len(instances)} instances in {len(masks)} frames written to {transforms.parent / 'masks'} "
+            f"[bold]masks: {len(instances)} instances in {len(masks)} frames written to {transforms.parent / 'instance_masks'} "
             f"({self.masks_report['time_s']:.1f} s)"
         )
         return self.masks_report
@@ -368,12 +386,45 @@ class SplatReplacePipeline(VanillaPipeline):
     @torch.no_grad()
     def begin_selection(self) -> InstanceSelection:
         """A fresh selection, with the background's feature taken from the training masks."""
+        if self.config.segmentation.lift == "voting":
+            votes = self.lift_votes()
+            self.selection = InstanceSelection(gaussian_features=lambda: voted_features(self.lift_votes()),
+                                               background_query=voting_background_query(votes),
+                                               tau=self.config.segmentation.tau)
+            return self.selection
         self.selection = InstanceSelection(
             gaussian_features=lambda: self.model.features_contrastive.detach(),
             background_query=self._background_query(),
             tau=self.config.segmentation.tau,
         )
         return self.selection
+
+    @torch.no_grad()
+    def lift_votes(self) -> Votes:
+        """Voting lift: the training masks' labels voted onto the Gaussians (``segment.voting``), kept while the
+        Gaussian set is the same (``votes_time_s``: seconds of the last vote)."""
+        votes = getattr(self, "_lift_votes", None)
+        if votes is None or votes.labels.shape[0] != self.model.num_points:
+            start = time.perf_counter()
+            ids = self._click_instance_ids
+            if ids is not None and ids.shape[0] == self.model.num_points:  # masks made from clicks in this run
+                votes = votes_from_labels(ids.to(self.device), max(int(ids.max()), 0))
+            else:
+                votes = vote_training_views(self.model, self.datamanager.train_dataset,
+                                            self.config.segmentation.vote_min_share, self.device)
+            self._lift_votes, self.votes_time_s = votes, time.perf_counter() - start
+            source = f"{votes.views} training masks" if votes.views else "the masks step's instances (no vote needed)"
+            CONSOLE.log(f"voting lift: {int((votes.labels > 0).sum())} of {votes.labels.shape[0]} Gaussians take an "
+                        f"instance label from {source} ({self.votes_time_s:.1f} s)")
+        return votes
+
+    def selection_features(self) -> Optional[torch.Tensor]:
+        """[N, D] features the clicks select by, for ``model.render_features`` (None: the contrastive ones)."""
+        return voted_features(self.lift_votes()) if self.config.segmentation.lift == "voting" else None
+
+    def _click_query(self, features: torch.Tensor, alpha: torch.Tensor, u: float, v: float, source: str) -> torch.Tensor:
+        query = query_at_pixel(features, alpha, u, v, source, self.config.segmentation.min_alpha)
+        return snap_query(query) if self.config.segmentation.lift == "voting" else query
 
     @torch.no_grad()
     def _background_query(self, max_views: int = 8) -> Optional[torch.Tensor]:
@@ -396,9 +447,9 @@ class SplatReplacePipeline(VanillaPipeline):
         assert self.selection is not None
         source = f"click {click.index} ({click.file_path} at {click.xy})"
         index = self.train_index_of(click.file_path)
-        features, alpha, _ = self.model.render_features(self.train_camera(index))
+        features, alpha, _ = self.model.render_features(self.train_camera(index), self.selection_features())
         u, v = self.datamanager.train_pixel(index, click.xy)  # the training image may be undistorted and cropped
-        query = query_at_pixel(features, alpha, u, v, source, self.config.segmentation.min_alpha)
+        query = self._click_query(features, alpha, u, v, source)
         instance = self.selection.add(query, click.cls, source)
         CONSOLE.log(f"instance {instance.id} ({instance.cls}): {instance.num_gaussians} Gaussians from {source}")
 
@@ -409,8 +460,8 @@ class SplatReplacePipeline(VanillaPipeline):
         size = 33
         focal = float(self.datamanager.train_dataset.cameras.fx.median())
         camera = ray_camera(origin, direction, focal, size).to(self.device)
-        features, alpha, _ = self.model.render_features(camera)
-        return query_at_pixel(features, alpha, size // 2, size // 2, "viewer click", self.config.segmentation.min_alpha)
+        features, alpha, _ = self.model.render_features(camera, self.selection_features())
+        return self._click_query(features, alpha, size // 2, size // 2, "viewer click")
 
     def should_wait_for_viewer(self) -> bool:
         mode = self.config.segmentation.interactive
@@ -425,6 +476,7 @@ class SplatReplacePipeline(VanillaPipeline):
         """Selects the instances (clicks.json or viewer), renders their masks, carves the background."""
         start = time.perf_counter()
         self.model.eval()
+        self._lift_votes = None  # a fresh vote on the model as it is now
         self.begin_selection()
         skipped: List[str] = []
         from_viewer = False
@@ -450,6 +502,10 @@ class SplatReplacePipeline(VanillaPipeline):
                     CONSOLE.log(f"[bold yellow]skipped: {err}")
                     skipped.append(str(err))
         report = self.finish_segmentation()
+        report["lift"] = self.config.segmentation.lift
+        if self.config.segmentation.lift == "voting":
+            report["vote_time_s"] = self.votes_time_s
+            report["vote_views"] = self._lift_votes.views  # 0: the masks step's own per-Gaussian ids, no vote
         report["skipped_clicks"] = skipped  # also kept in self.segmentation_report
         report["time_s"] = time.perf_counter() - start  # also kept in self.segmentation_report
         self.model.train()
@@ -476,9 +532,10 @@ class SplatReplacePipeline(VanillaPipeline):
         masks, depths = [], []
         one_hot = torch.nn.functional.one_hot(labels, queries.shape[0] + 1)[:, 1:].float()  # [N, M]
         coverage = torch.zeros(queries.shape[0], 2, dtype=torch.long, device=self.device)
+        selection_features = self.selection.gaussian_features()
         for idx in range(len(cameras)):
             camera = cameras[idx : idx + 1].to(self.device)
-            features, alpha, depth = model.render_features(camera)
+            features, alpha, depth = model.render_features(camera, selection_features)
             masks.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha))
             depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])))
             instance_alpha, _, _ = model.render_features(camera, one_hot)

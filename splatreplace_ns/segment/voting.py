@@ -160,3 +160,16 @@ def vote_training_views(model, dataset, min_share: float = 0.0, device=None) -> 
         return model.render_features(cameras[view : view + 1].to(device), features)[0]
 
     return vote_labels(render_view, masks(), model.num_points, min_share, device)
+
+
+def votes_from_labels(labels: torch.Tensor, num_labels: int) -> Votes:
+    """Labels already known per Gaussian (the geometric masks step's instance ids, made from the clicks on the same
+    Gaussians) as :class:`Votes`, each Gaussian with all of its one unit of weight on its label: no 3D → 2D → 3D
+    round trip through rendered masks.
+
+    Args:
+        labels: [N] int label of each Gaussian (0 = background).
+        num_labels: K, the largest label (the weights get K + 1 columns).
+    """
+    labels = labels.long().clamp(0, num_labels)
+    return Votes(labels=labels, weights=one_hot_labels(labels, num_labels).float(), views=0)
