@@ -332,7 +332,13 @@ def _train_and_score(cfg: BenchCaptureConfig, data: Path, out: Path, c2w_saved: 
 
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     clock = StageClock(B, C, F)
-    pair = train_ours_and_baseline(data, out, B, C, F, parallel=not cfg.sequential, after_step=clock)
+    start = time.perf_counter()
+    try:
+        pair = train_ours_and_baseline(data, out, B, C, F, parallel=not cfg.sequential, after_step=clock)
+    except (ValueError, RuntimeError) as err:  # a refused click or a failed run: the row says why, the others go on
+        print(f"[capture] {data.name}: ours stopped: {err}", flush=True)
+        return {"error": f"{type(err).__name__}: {err}", "failed_after_s": time.perf_counter() - start,
+                "time_s": dict(clock.times)}
     _, intrinsics, images, masks = truth
     pipeline = pair["ours_trainer"].pipeline
     start = time.perf_counter()
@@ -436,6 +442,11 @@ def print_table(result: Dict) -> None:
         table.add_column(col)
     for name, row in result["rows"].items():
         t = row["time_s"]
+        if "error" in row:
+            table.add_row("COLMAP (photos only)" if name == "photos" else "exact",
+                          f"{colmap['posed']}/{colmap['photos']}" if name == "photos" else "all",
+                          *(["failed"] + [""] * 10), f"{colmap['seconds']:.0f}" if name == "photos" else "-")
+            continue
         table.add_row(
             "COLMAP (photos only)" if name == "photos" else "exact",
             f"{colmap['posed']}/{colmap['photos']}" if name == "photos" else "all",
@@ -446,5 +457,8 @@ def print_table(result: Dict) -> None:
             f"{colmap['seconds']:.0f}" if name == "photos" else "-",
         )
     Console(width=200).print(table)
+    for name, row in result["rows"].items():
+        if "error" in row:
+            print(f"{name}: {row['error']} (after {row['failed_after_s']:.0f} s)")
     print(f"camera centres after the similarity fit: mean {colmap['centre_error_m']['mean'] * 100:.2f} cm, "
           f"max {colmap['centre_error_m']['max'] * 100:.2f} cm; total {result['time_s']['total'] / 60:.1f} min")
