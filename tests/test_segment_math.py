@@ -182,7 +182,7 @@ def test_a_wait_for_viewer_clicks_ends_when_asked_and_gives_its_lock_back():
 
     from splatreplace_ns.viewer.click_controls import ClickControls
 
-    controls = ClickControls("a", "u", "c", "l", "s", "status")
+    controls = ClickControls("Panel", "a", "u", "c", "l", "s", "status")
     lock = threading.Lock()
     lock.acquire()
     calls = []
