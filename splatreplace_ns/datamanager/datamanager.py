@@ -79,6 +79,14 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
             for key in keys_here:
                 data[key] = remap_nearest(data[key], maps).to(data[key].device)
 
+    def train_instance_mask(self, index: int) -> torch.Tensor:
+        """[H, W] instance mask of training image ``index`` in the geometry it is trained in (undistorted and
+        cropped like its image when the camera has distortion; ``train_dataset.get_data`` gives the captured one)."""
+        data = self.cached_train[index]
+        if "instance_mask" not in data:
+            raise ValueError(f"{self.train_dataset.image_filenames[index]}: no instance mask")
+        return data["instance_mask"][..., 0]
+
     @property
     def image_downscale(self) -> int:
         """The factor nerfstudio's dataparser scaled the images and cameras down by (it reads ``images_<f>/``)."""

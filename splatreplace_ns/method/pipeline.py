@@ -410,7 +410,8 @@ class SplatReplacePipeline(VanillaPipeline):
             if ids is not None and ids.shape[0] == self.model.num_points:  # masks made from clicks in this run
                 votes = votes_from_labels(ids.to(self.device), max(int(ids.max()), 0))
             else:
-                votes = vote_training_views(self.model, self.datamanager.train_dataset,
+                votes = vote_training_views(self.model, self.datamanager.train_dataset.cameras,
+                                            self.datamanager.train_instance_mask,
                                             self.config.segmentation.vote_min_share, self.device)
             self._lift_votes, self.votes_time_s = votes, time.perf_counter() - start
             source = f"{votes.views} training masks" if votes.views else "the masks step's instances (no vote needed)"
@@ -434,7 +435,7 @@ class SplatReplacePipeline(VanillaPipeline):
         picks = np.linspace(0, len(dataset) - 1, min(max_views, len(dataset))).round().astype(int)
         feats = []
         for idx in sorted(set(picks.tolist())):
-            mask = dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0].to(self.device)
+            mask = self.datamanager.train_instance_mask(idx).to(self.device)  # the trained (undistorted) geometry
             features, alpha, _ = self.model.render_features(self.train_camera(idx))
             keep = (mask == 0) & (alpha[..., 0] >= self.config.segmentation.min_alpha)
             feats.append(torch.nn.functional.normalize(features[keep], dim=-1))

@@ -139,27 +139,21 @@ def snap_query(rendered: torch.Tensor) -> torch.Tensor:
     return one_hot_labels(label, rendered.shape[-1] - 1)[0].to(rendered)
 
 
-def vote_training_views(model, dataset, min_share: float = 0.0, device=None) -> Votes:
-    """:func:`vote_labels` over every view of a nerfstudio dataset whose frames carry ``instance_mask``, rendered
-    with ``model.render_features`` (geometry detached; the model's backend).
+def vote_training_views(model, cameras, mask_of: Callable[[int], torch.Tensor], min_share: float = 0.0,
+                        device=None) -> Votes:
+    """:func:`vote_labels` over every training view, rendered with ``model.render_features`` (geometry detached; the
+    model's backend).
 
-    Raises:
-        ValueError naming the first image without an instance mask.
+    Args:
+        cameras: the training views' nerfstudio ``Cameras`` (as trained: undistorted, cropped).
+        mask_of: ``mask_of(v) -> [H, W]`` instance mask of view ``v`` in the same geometry (the datamanager's
+            ``train_instance_mask``).
     """
-    cameras = dataset.cameras
-
-    def masks():
-        for idx in range(len(dataset)):
-            data = dataset.get_data(idx, image_type="uint8")
-            if "instance_mask" not in data:
-                raise ValueError(f"{dataset.image_filenames[idx]}: no instance mask; the voting lift needs one "
-                                 "in every training view")
-            yield data["instance_mask"][..., 0]
 
     def render_view(view: int, features: torch.Tensor) -> torch.Tensor:
         return model.render_features(cameras[view : view + 1].to(device), features)[0]
 
-    return vote_labels(render_view, masks(), model.num_points, min_share, device)
+    return vote_labels(render_view, (mask_of(v) for v in range(len(cameras))), model.num_points, min_share, device)
 
 
 def votes_from_labels(labels: torch.Tensor, num_labels: int) -> Votes:
