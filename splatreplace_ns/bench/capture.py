@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 import torch
 
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.bench.output import fmt_number as _fmt, write_result_json
 from splatreplace_ns.demo import DemoCommand
 from splatreplace_ns.eval.alignment import centre_errors, similarity_pose
 
@@ -421,12 +421,6 @@ def run_capture_bench(cfg: BenchCaptureConfig) -> Dict:
         "versions": versions(),
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
     }
-
-
-def _fmt(value: Optional[float], digits: int = 2, signed: bool = False) -> str:
-    if value is None:
-        return "n/a"
-    return f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
 
 
 def print_table(result: Dict) -> None:

@@ -17,3 +17,10 @@ def write_result_json(result: Dict[str, Any], path: Optional[Path]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(json_safe(result), indent=2, allow_nan=False) + "\n")
     print(f"wrote {path}")
+
+
+def fmt_number(value: Optional[float], digits: int = 2, signed: bool = False) -> str:
+    """A table cell: ``value`` with ``digits`` decimals (a sign when ``signed``), or ``n/a`` for a missing figure."""
+    if value is None:
+        return "n/a"
+    return f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"

@@ -28,7 +28,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 
 import torch
 
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.bench.output import fmt_number as _fmt, write_result_json
 from splatreplace_ns.demo import DemoCommand
 
 DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
@@ -292,12 +292,6 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
         "versions": versions(),
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
     }
-
-
-def _fmt(value: Optional[float], digits: int = 2, signed: bool = False) -> str:
-    if value is None:
-        return "n/a"
-    return f"{value:+.{digits}f}" if signed else f"{value:.{digits}f}"
 
 
 def scene_label(row: Dict) -> str:
