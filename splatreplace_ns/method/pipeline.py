@@ -130,6 +130,8 @@ class SplatReplacePipeline(VanillaPipeline):
         self._train_lock = None  # the trainer's; held by the training thread through each step and its callbacks
         self._mask_clicks_from_viewer = False
         self._click_instance_ids: Optional[torch.Tensor] = None  # [N] per-Gaussian ids from this run's masks step
+        self._lift_votes: Optional[Votes] = None  # the voting lift's last vote, kept while the Gaussian set is the same
+        self.votes_time_s = 0.0
         self._in_training_callback = False
         self._masks_stale = False
         if self.test_mode == "val" and self.config.contrastive_iterations > 0:
@@ -403,7 +405,7 @@ class SplatReplacePipeline(VanillaPipeline):
     def lift_votes(self) -> Votes:
         """Voting lift: the training masks' labels voted onto the Gaussians (``segment.voting``), kept while the
         Gaussian set is the same (``votes_time_s``: seconds of the last vote)."""
-        votes = getattr(self, "_lift_votes", None)
+        votes = self._lift_votes
         if votes is None or votes.labels.shape[0] != self.model.num_points:
             start = time.perf_counter()
             ids = self._click_instance_ids
