@@ -10,7 +10,7 @@ demo: setup
 	$(PY) -m splatreplace_ns.cli demo
 
 test: setup
-	$(PY) -m pytest -q --durations=20 tests
+	$(PY) -m pytest -q -n 2 --dist loadfile --durations=20 tests
 
 bench-render: setup
 	$(PY) -m splatreplace_ns.cli bench render --json benchmarks/results/render_cpu.json
