@@ -120,3 +120,42 @@ def test_one_tiny_scene_end_to_end(tmp_path, capsys):
     cfg.main()
     assert "reusing" in capsys.readouterr().out
     assert json.loads((tmp_path / "again.json").read_text())["scenes"] == result["scenes"]
+
+    # a variant of registration resumed from that run's segmentation: the baseline and the segmentation are the
+    # defaults' (not trained again), the registration is the paper's (most PnP inliers, every pose accepted)
+    variant = BenchSuiteConfig(**{**cfg.__dict__, "resume": False, "json": tmp_path / "paper.json",
+                                  "registration": "paper", "from_segmentation": True})
+    variant.main()
+    paper = json.loads((tmp_path / "paper.json").read_text())
+    (paper_row,) = paper["scenes"]
+    assert paper["variant"] == paper_row["variant"] == "reg-paper" and paper_row["resumed_from_segmentation"]
+    assert paper_row["baseline"] == row["baseline"] and paper_row["segmentation_miou"] == row["segmentation_miou"]
+    assert paper_row["time_s"]["base"] == 0.0 and paper_row["time_s"]["ours"] < row["time_s"]["ours"]
+    assert paper_row["gain_masked"] == pytest.approx(paper_row["ours"]["psnr_masked"] - row["baseline"]["psnr_masked"])
+    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_reg-paper"
+    assert (folder / "result.json").exists() and not (folder / "baseline").exists()
+    saved = (folder / "ours" / "splat-replace" / "run" / "config.yml").read_text()
+    assert "select: inliers" in saved and "multistart_turns: 0" in saved
+
+
+def test_a_variant_from_segmentation_needs_the_defaults_run(tmp_path):
+    cfg = BenchSuiteConfig(split="dev", seeds=(1,), res="48x36", n_train=10, n_test=2, base_iterations=60,
+                           contrastive_iterations=30, finetune_iterations=30, data_root=tmp_path / "data",
+                           out_dir=tmp_path / "runs", registration="paper", from_segmentation=True)
+    with pytest.raises(FileNotFoundError, match="run `splatreplace bench suite` with the same split"):
+        suite.run_suite(cfg)
+    with pytest.raises(ValueError, match="unknown registration variant 'papers'"):
+        suite.configure_ours(BenchSuiteConfig(registration="papers"))
+    with pytest.raises(ValueError, match="has no field 'gates'"):
+        suite.configure_ours(BenchSuiteConfig(overrides=("pipeline.gates.enabled=True",)))
+
+
+def test_variant_labels_name_the_run_folders():
+    from pathlib import Path
+
+    default = BenchSuiteConfig(out_dir=Path("runs"))
+    assert suite.variant_label(default) == "" and suite.run_folder(default, "s").name.endswith("-1000")
+    gate = BenchSuiteConfig(out_dir=Path("runs"), overrides=("pipeline.gate.enabled=True",))
+    assert suite.variant_label(gate) == "reg-ours+pipeline.gate.enabled=True"
+    assert suite.run_folder(gate, "s").name.endswith("_reg-ours+pipeline.gate.enabled=True")
+    assert suite.run_folder(gate, "s", default=True) == suite.run_folder(default, "s")

@@ -9,6 +9,8 @@ alone. Every instance is then registered onto its class template with
 
 * ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, multi-start,
   ICP restricted to turns about the floor's normal);
+* ``paper``: §4.2 as written: the top-k pairs' PnP pose with the most inliers, rigid ICP on every centre, every
+  registration accepted (no multi-start, colour score, upright polish, floor, free-space or level-face rule);
 * ``no_upright``: full rigid ICP (the paper's) instead;
 * ``polish_on_centres``: the upright polish aligns the Gaussians' centres instead of the rendered surfaces;
 * ``no_same_floor``: the copy's height from ICP rather than from the floor it shares with the template;
@@ -58,11 +60,12 @@ import torch
 
 from splatreplace_ns.register.errors import rotation_error_deg, translation_error_rel
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, register_instances, with_floor_up_axis
+from splatreplace_ns.register.variants import REGISTRATION_VARIANTS, registration_variant
 from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "no_upright", "polish_on_centres", "no_same_floor", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
+    "ours", "paper", "no_upright", "polish_on_centres", "no_same_floor", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
     "icp_from_truth",
 )
 TRUTH_START_ROWS = ("icp_from_truth",)  # rows that start from the ground truth instead of searching
@@ -88,7 +91,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, no_upright, polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp, icp_from_truth (ours' refinement started from the ground-truth pose)."""
     pairwise: bool = False
     """Also register every ordered pair of copies within each class of three or more instances (settings of
@@ -440,26 +443,10 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
     onnx_model = getattr(base, "onnx_model", None)
     out: List[Tuple[str, RegistrationConfig]] = []
     for row in rows:
-        if row == "ours":
-            out.append(("ours", replace(base, method="ours")))
-        elif row == "no_upright":  # full rigid ICP (the paper's) instead of turns about the floor's normal
-            out.append((row, replace(base, method="ours", upright=False)))
-        elif row == "polish_on_centres":  # the upright polish on the Gaussians' centres, not the rendered surface
-            out.append((row, replace(base, method="ours", polish_on="centres")))
-        elif row == "no_same_floor":  # the height of the copy from ICP, not from the floor both stand on
-            out.append((row, replace(base, method="ours", same_floor_tolerance=0.0)))
-        elif row == "no_shape_first":  # the colour score chooses among every acceptable candidate
-            out.append((row, replace(base, method="ours", colour_fitness_ratio=0.0)))
-        elif row == "no_level_colour":  # the overall colour score alone picks between near-symmetric turns
-            out.append((row, replace(base, method="ours", level_colour=False)))
-        elif row == "no_free_space":  # candidates not checked against the space the cameras saw through
-            out.append((row, replace(base, method="ours", max_free_space_violation=0.0)))
-        elif row == "no_multistart":  # the paper's candidates: PnP poses of the top-k view pairs only
-            out.append((row, replace(base, method="ours", multistart_turns=0)))
+        if row in REGISTRATION_VARIANTS:  # the defaults, the paper's rule, or the defaults less one added rule
+            out.append((row, registration_variant(row, base)))
         elif row == "no_virtual_views":
             out.append((row, replace(base, method="no_virtual_views")))
-        elif row == "no_icp":
-            out.append((row, replace(base, method="ours", icp=False)))
         elif row == "fpfh":
             out.append((row, replace(base, method="fpfh")))
         elif row == "fpfh_no_icp":
@@ -477,7 +464,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, no_upright, polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, paper, no_upright, polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp, icp_from_truth"
             )
     return out

@@ -75,6 +75,16 @@ class BenchSuiteConfig:
     """Reuse a scene's result.json from an earlier run of the same configuration instead of training it again."""
     sequential: bool = False
     """Train the baseline after ours instead of beside it (beside: each on half of the CPU cores)."""
+    registration: str = "ours"
+    """Registration rule of ours (``splatreplace_ns.register.variants``): ours (the defaults), paper (§4.2 as
+    written: most PnP inliers, rigid ICP, no added rule), or the defaults less one rule: no_upright,
+    polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_icp."""
+    overrides: Tuple[str, ...] = ()
+    """Settings of ours' trainer config as PATH=VALUE, e.g. pipeline.gate.enabled=True (the baseline keeps its own)."""
+    from_segmentation: bool = False
+    """For a variant (--registration or --overrides): resume ours from the checkpoint at the end of segmentation
+    of the same scene's run with the defaults at the same budget, and reuse that run's baseline, so a variant of
+    registration or of a later stage costs its registration and fine-tuning alone. Run the defaults first."""
 
     def main(self) -> Dict:
         result = run_suite(self)
@@ -102,6 +112,40 @@ def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
     if not 1 <= count <= len(pool):
         raise ValueError(f"--scenes must be between 1 and {len(pool)} for the {cfg.split} split, got {count}")
     return list(pool[:count])
+
+
+def variant_label(cfg: BenchSuiteConfig) -> str:
+    """"" for the defaults; else what differs, e.g. ``reg-paper`` or ``reg-ours+pipeline.gate.enabled=True``."""
+    if cfg.registration == "ours" and not cfg.overrides:
+        return ""
+    return "+".join([f"reg-{cfg.registration}", *cfg.overrides])
+
+
+def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> Path:
+    """The folder of one scene's runs (ours, baseline, result.json) for this configuration, or with
+    ``default=True`` for the defaults at the same budget."""
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    label = "" if default else variant_label(cfg)
+    safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
+    return cfg.out_dir / (f"{data_name}_{B}-{C}-{F}" + (f"_{safe}" if safe else ""))
+
+
+def configure_ours(cfg: BenchSuiteConfig):
+    """``configure(trainer_config)``: ours' registration variant and overrides (nothing for the defaults)."""
+    from splatreplace_ns.bench.overrides import apply_overrides
+    from splatreplace_ns.method.config import splat_replace_trainer_config
+    from splatreplace_ns.register.variants import registration_variant
+
+    # an unknown variant or override stops here, before anything trains
+    apply_overrides(splat_replace_trainer_config(1, 1, 1), cfg.overrides)
+    registration_variant(cfg.registration, splat_replace_trainer_config(1, 1, 1).pipeline.registration)
+
+    def configure(trainer_config) -> None:
+        pipeline = trainer_config.pipeline
+        pipeline.registration = registration_variant(cfg.registration, pipeline.registration)
+        apply_overrides(trainer_config, cfg.overrides)
+
+    return configure
 
 
 def scene_name(seed: int, res: str, n_train: int, n_test: int) -> str:
@@ -187,11 +231,17 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         segmentation.update(report or {"unavailable": why_not})
 
     clock = StageClock(B, C, F, at_segmentation=score_segmentation)
-    pair = train_ours_and_baseline(data, cfg.out_dir / f"{data.name}_{B}-{C}-{F}", B, C, F,
-                                   parallel=not cfg.sequential, after_step=clock)
+    if cfg.from_segmentation:
+        pair = train_variant_from_segmentation(data, cfg)
+        segmentation.update(pair["segmentation"])
+    else:
+        pair = train_ours_and_baseline(data, run_folder(cfg, data.name), B, C, F, resumable=True,
+                                       parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg))
     pipeline = pair["ours_trainer"].pipeline
     registration, _ = registration_report(pipeline)
     times = pair["times"]
+    stages = pair.get("stages") or clock.stages(times["ours"], times.get("segmentation", 0.0),
+                                                times.get("registration", 0.0))
     ours, baseline = pair["ours"], pair["baseline"]
     per_instance = {}
     for key, value in (ours.get("psnr_per_instance") or {}).items():
@@ -212,14 +262,54 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         "segmentation_unavailable": segmentation.get("unavailable"),
         "registration": _registration_summary(registration, pipeline.model.registration),
         "replaced": pipeline.model.has_templates,
-        "time_s": {"sim": sim_s,
-                   **clock.stages(times["ours"], times.get("segmentation", 0.0), times.get("registration", 0.0)),
-                   "ours": times["ours"], "baseline": times["baseline"], "total": time.perf_counter() - start},
+        "time_s": {"sim": sim_s, **stages, "ours": times["ours"], "baseline": times["baseline"], "total": time.perf_counter() - start},
         "baseline_beside_ours": pair["parallel"],
+        "variant": variant_label(cfg) or "defaults",
+        "resumed_from_segmentation": cfg.from_segmentation,
     }
     del pair, pipeline
     gc.collect()
     return row
+
+
+def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
+    """Ours with the variant's settings, resumed from the defaults' run of this scene at the end of segmentation;
+    the baseline's metrics and the segmentation's score are that run's (the same segmentation). → the fields of
+    ``train_ours_and_baseline``'s result the suite reads, with ``segmentation`` and the ``stages`` of this run
+    (base, contrastive and segmentation 0; fine-tuning includes loading and evaluating).
+
+    Raises:
+        FileNotFoundError: when the defaults' run or its checkpoint at the end of segmentation is missing.
+    """
+    from splatreplace_ns.bench.template import _run, test_metrics
+    from splatreplace_ns.method.train import make_trainer_config
+
+    if not variant_label(cfg):
+        raise ValueError("--from-segmentation needs a variant (--registration or --overrides)")
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    default = run_folder(cfg, data.name, default=True)
+    checkpoints = default / "ours" / "splat-replace" / "run" / "nerfstudio_models"
+    saved = default / "result.json"
+    if not saved.exists() or not (checkpoints / f"step-{B + C - 1:09d}.ckpt").exists():
+        raise FileNotFoundError(
+            f"{default}: no run with the defaults that kept its checkpoint at the end of segmentation (step "
+            f"{B + C - 1}); run `splatreplace bench suite` with the same split, scenes and budget first")
+    previous = json.loads(saved.read_text())["row"]
+    baseline = dict(previous["baseline"])
+    baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
+    config = make_trainer_config(data, run_folder(cfg, data.name), B, C, F, experiment_name="ours", progress=True,
+                                 resume_from=(checkpoints, B + C - 1))
+    configure_ours(cfg)(config)
+    torch.set_num_threads(os.cpu_count() or 1)  # ours alone
+    trainer, seconds = _run(config)
+    pipeline = trainer.pipeline
+    registration_s = float(pipeline.registration_report.get("time_s", float("nan")))
+    segmentation = {"miou": previous.get("segmentation_miou"), "unavailable": previous.get("segmentation_unavailable")}
+    return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
+            "segmentation": {k: v for k, v in segmentation.items() if v is not None},
+            "times": {"ours": seconds, "baseline": previous["time_s"]["baseline"]},
+            "stages": {"base": 0.0, "contrastive": 0.0, "segmentation": 0.0, "registration": registration_s,
+                       "finetune": seconds - registration_s, "setup_and_eval": 0.0}}
 
 
 def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
@@ -259,11 +349,11 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
     t0 = time.perf_counter()
     configuration = {"res": res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
                      "contrastive_iterations": cfg.contrastive_iterations,
-                     "finetune_iterations": cfg.finetune_iterations}
+                     "finetune_iterations": cfg.finetune_iterations, "registration": cfg.registration,
+                     "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation}
     rows = []
     for k, seed in enumerate(seeds):
-        B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
-        saved = cfg.out_dir / f"{scene_name(seed, res, cfg.n_train, cfg.n_test)}_{B}-{C}-{F}" / "result.json"
+        saved = run_folder(cfg, scene_name(seed, res, cfg.n_train, cfg.n_test)) / "result.json"
         if cfg.resume and saved.exists():
             previous = json.loads(saved.read_text())
             if previous.get("configuration") == configuration:
@@ -282,6 +372,7 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
         "split": cfg.split,
         "seeds": seeds,
         "quick": cfg.quick,
+        "variant": variant_label(cfg) or "defaults",
         "parameters": {**configuration, "baseline_iterations": cfg.base_iterations + cfg.contrastive_iterations
                        + cfg.finetune_iterations, "sequential": cfg.sequential},
         "scenes": rows,

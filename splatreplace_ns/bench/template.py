@@ -152,7 +152,8 @@ def _wait_for(process, queue) -> Dict:
 
 
 def train_ours_and_baseline(
-    data: Path, out: Path, B: int, C: int, F: int, resumable: bool = False, parallel: bool = False, after_step=None
+    data: Path, out: Path, B: int, C: int, F: int, resumable: bool = False, parallel: bool = False, after_step=None,
+    configure=None,
 ) -> Dict:
     """Trains the whole method and the 3DGS* baseline with the same total iterations and scores both.
 
@@ -165,6 +166,7 @@ def train_ours_and_baseline(
             two runs side by side finish much sooner than one after the other). Its log goes to
             ``out/baseline.log``.
         after_step: ``after_step(trainer, step)`` after every step of ours (see ``method.train.run_training``).
+        configure: ``configure(trainer_config)`` changes ours' settings before it trains (not the baseline's).
     Returns:
         {"ours", "baseline": metrics, "ours_trainer", "baseline_pipeline", "ours_config", "times", "sizes",
          "registration"}.
@@ -191,6 +193,8 @@ def train_ours_and_baseline(
         ours_cfg = make_trainer_config(data, out, B, C, F, experiment_name="ours",
                                        steps_per_save=B + C - 1 if resumable else None, progress=True)
         ours_cfg.save_only_latest_checkpoint = not resumable
+        if configure is not None:
+            configure(ours_cfg)
         ours_trainer, times["ours"] = _run(ours_cfg, after_step=after_step)
     except BaseException:
         if worker is not None:
