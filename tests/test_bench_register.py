@@ -192,13 +192,13 @@ def test_ground_truth_labels_rendered_into_views_score_high_and_swapped_ones_low
     _, scene = tiny_bench
     pipeline = scene.pipeline
     views = pipeline.datamanager.train_dataset
-    truth = score_gaussian_labels_in_views(pipeline.model, scene.gt_labels, views)
+    truth = score_gaussian_labels_in_views(pipeline.model, scene.gt_labels, views, pipeline.datamanager)
     assert truth["miou"] > 0.6 and min(truth["iou"].values()) > 0.4, truth["iou"]
     swapped = scene.gt_labels.clone()
     swapped[scene.gt_labels == 1], swapped[scene.gt_labels == 2] = 2, 1
-    wrong = score_gaussian_labels_in_views(pipeline.model, swapped, views)
+    wrong = score_gaussian_labels_in_views(pipeline.model, swapped, views, pipeline.datamanager)
     assert wrong["iou"][1] < 0.2 and wrong["iou"][2] < 0.2 and abs(wrong["iou"][3] - truth["iou"][3]) < 1e-9
-    empty = score_gaussian_labels_in_views(pipeline.model, torch.zeros_like(scene.gt_labels), views)
+    empty = score_gaussian_labels_in_views(pipeline.model, torch.zeros_like(scene.gt_labels), views, pipeline.datamanager)
     assert empty["iou"] == {} and empty["miou"] == 0.0
 
 

@@ -234,6 +234,30 @@ def test_masks_and_depth_follow_the_images_through_undistortion(tmp_path, model)
 
 
 @pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_masks_scored_against_renders_are_read_where_the_cameras_render(tmp_path, model):
+    """Evaluation compares renders with masks: each view's mask (train and eval split) comes out on the pixels of
+    its undistorted, cropped image, and so does a reference mask given over the captured picture (the truth of a
+    benchmark), also at half its size."""
+    Wd, Hd, mask = write_distorted_capture(tmp_path, model)
+    dm = setup_dm(tmp_path)
+    half = cv2.resize(mask, (Wd // 2, Hd // 2), interpolation=cv2.INTER_NEAREST)
+    for dataset, cached in ((dm.train_dataset, dm.cached_train), (dm.eval_dataset, dm.cached_eval)):
+        assert len(dataset) > 0
+        for idx in range(len(dataset)):
+            code = cached[idx]["image"].numpy()[..., 0].astype(int)
+            exact = np.isin(code, [0, 60, 120, 180])
+            ours = dm.instance_mask_as_rendered(dataset, idx).numpy()
+            assert ours.shape == code.shape and exact.mean() > 0.8
+            assert (ours[exact] * 60 == code[exact]).mean() > 0.995
+            assert np.array_equal(dm.mask_as_rendered(dataset, idx, mask).numpy(), ours)
+            from_half = dm.mask_as_rendered(dataset, idx, half).numpy()
+            assert from_half.shape == code.shape and (from_half[exact] * 60 == code[exact]).mean() > 0.9
+    # the captured mask at the same index is another part of the picture: what evaluation read before
+    stored = dm.eval_dataset.get_data(0, image_type="uint8")["instance_mask"][..., 0].numpy()
+    assert stored.shape != code.shape or (stored[exact] * 60 == code[exact]).mean() < 0.97
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
 def test_a_click_on_the_image_file_lands_on_the_same_object_in_the_undistorted_image(tmp_path, model):
     """clicks.json gives pixels of the image files; the segmentation stage reads features of the undistorted,
     cropped training image. Every pixel well inside an object of the file maps onto that object there."""

@@ -353,10 +353,10 @@ def label_gaussians_from_ground_truth(pipeline, depth_tolerance: float) -> torch
     ones = torch.ones(model.num_points, 1, device=model.means.device)
     masks, depths = [], []
     for idx in range(len(dataset)):
-        data = dataset.get_data(idx, image_type="uint8")
-        if "instance_mask" not in data:
-            raise ValueError(f"{dataset.image_filenames[idx]}: no instance mask; the bench needs ground-truth masks")
-        masks.append(data["instance_mask"][..., 0].long())
+        try:
+            masks.append(pipeline.datamanager.train_instance_mask(idx).long())
+        except ValueError as err:
+            raise ValueError(f"{err}; the bench needs ground-truth masks") from None
         _, alpha, depth = model.render_features(dataset.cameras[idx : idx + 1], features=ones)
         depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])).cpu())
     return labels_from_masks(

@@ -193,8 +193,9 @@ def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, car
                 record["final"].update(miou_train=train["miou"], macc_train=train["macc"])
                 # the ceiling of this reconstruction: Gaussians labelled by the ground-truth training masks
                 truth = label_gaussians_from_ground_truth(pipeline, cfg.gt_depth_tolerance)
-                test_gt = score_gaussian_labels_in_views(pipeline.model, truth, pipeline.datamanager.eval_dataset)
-                train_gt = score_gaussian_labels_in_views(pipeline.model, truth, train_views)
+                test_gt = score_gaussian_labels_in_views(pipeline.model, truth, pipeline.datamanager.eval_dataset,
+                                                         pipeline.datamanager)
+                train_gt = score_gaussian_labels_in_views(pipeline.model, truth, train_views, pipeline.datamanager)
                 record["final"].update(miou_gt_labels=test_gt["miou"], miou_gt_labels_train=train_gt["miou"])
             marks[f"probe_{step}"] = time.perf_counter() - t0
             if step == cfg.base_iterations + contrastive - 1:

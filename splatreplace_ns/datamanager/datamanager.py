@@ -6,6 +6,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type
 
+import cv2
+import numpy as np
 import torch
 
 from nerfstudio.cameras.cameras import Cameras
@@ -61,31 +63,62 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
 
     def _undistort(self, cached: List[Dict], cameras: Cameras, split: str, keys: Tuple[str, ...]) -> None:
         """Warps each cached image's per-pixel ``keys`` (read in the captured geometry) as nerfstudio warped it."""
-        captured = self.captured_cameras[split]
-        if captured.distortion is None:
-            return
-        K_after = cameras.get_intrinsics_matrices()
         for idx, data in enumerate(cached):
             keys_here = [key for key in keys if key in data]
-            if not keys_here:
-                continue
-            size = (int(data["image"].shape[1]), int(data["image"].shape[0]))
-            maps = undistortion_maps(
-                int(cameras.camera_type[idx].item()), captured.K[idx].numpy(), captured.distortion[idx].numpy(),
-                K_after[idx].numpy(), size,
-            )
+            maps = self._undistortion_maps(split, cameras, idx, data["image"]) if keys_here else None
             if maps is None:
                 continue
             for key in keys_here:
                 data[key] = remap_nearest(data[key], maps).to(data[key].device)
 
+    def _undistortion_maps(self, split: str, cameras: Cameras, idx: int, image: torch.Tensor):
+        """The captured → cached pixel maps of view ``idx`` of ``split`` (``image``: its cached [h, w, 3] image),
+        or None when its camera has no distortion."""
+        captured = self.captured_cameras[split]
+        if captured.distortion is None:
+            return None
+        size = (int(image.shape[1]), int(image.shape[0]))
+        return undistortion_maps(int(cameras.camera_type[idx].item()), captured.K[idx].numpy(),
+                                 captured.distortion[idx].numpy(), cameras.get_intrinsics_matrices()[idx].numpy(), size)
+
     def train_instance_mask(self, index: int) -> torch.Tensor:
         """[H, W] instance mask of training image ``index`` in the geometry it is trained in (undistorted and
         cropped like its image when the camera has distortion; ``train_dataset.get_data`` gives the captured one)."""
-        data = self.cached_train[index]
+        return self.instance_mask_as_rendered(self.train_dataset, index)
+
+    def _split_of(self, dataset) -> Optional[str]:
+        return "train" if dataset is self.train_dataset else "eval" if dataset is self.eval_dataset else None
+
+    def instance_mask_as_rendered(self, dataset, index: int) -> torch.Tensor:
+        """[H, W] instance mask of view ``index`` of ``dataset`` in the geometry its camera renders: for this
+        datamanager's train or eval dataset the cached mask (undistorted and cropped like its image); for any
+        other dataset the mask as stored."""
+        split = self._split_of(dataset)
+        data = (self.cached_train if split == "train" else self.cached_eval)[index] if split else \
+            dataset.get_data(index, image_type="uint8")
         if "instance_mask" not in data:
-            raise ValueError(f"{self.train_dataset.image_filenames[index]}: no instance mask")
+            raise ValueError(f"{dataset.image_filenames[index]}: no instance mask")
         return data["instance_mask"][..., 0]
+
+    def mask_as_rendered(self, dataset, index: int, mask: np.ndarray) -> torch.Tensor:
+        """[H, W] instance ids over view ``index``'s captured picture (a reference mask; another size of it is
+        resized, nearest) → [h, w] int64 in the geometry its camera renders, as :meth:`instance_mask_as_rendered`
+        (only resized for a dataset not of this datamanager or a camera without distortion)."""
+        split = self._split_of(dataset)
+        cameras = dataset.cameras
+        if split is None:
+            height, width = int(cameras.height[index]), int(cameras.width[index])
+        else:
+            captured = self.captured_cameras[split]
+            height, width = int(captured.height[index]), int(captured.width[index])
+        if mask.shape[:2] != (height, width):
+            mask = cv2.resize(mask.astype(np.uint16), (width, height), interpolation=cv2.INTER_NEAREST)
+        values = torch.from_numpy(mask.astype(np.int64))
+        if split is None:
+            return values
+        cached = (self.cached_train if split == "train" else self.cached_eval)[index]
+        maps = self._undistortion_maps(split, cameras, index, cached["image"])
+        return values if maps is None else remap_nearest(values[..., None], maps)[..., 0]
 
     @property
     def image_downscale(self) -> int:

@@ -18,9 +18,10 @@ def render_view(pipeline, index: int) -> np.ndarray:
 
 
 def ground_truth_view(pipeline, index: int) -> np.ndarray:
-    """(H, W, 3) float RGB of eval view ``index`` (alpha composited on the model's background)."""
-    data = pipeline.datamanager.eval_dataset.get_data(index, image_type="float32")
-    image = data["image"]
+    """(H, W, 3) float RGB of eval view ``index`` (alpha composited on the model's background), as cached for
+    evaluation: undistorted and cropped like the render when its camera has distortion."""
+    image = pipeline.datamanager.cached_eval[index]["image"]
+    image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
     if image.shape[-1] == 4:
         background = pipeline.model.background_color.to(image.device)
         image = image[..., :3] * image[..., 3:] + background * (1 - image[..., 3:])

@@ -182,7 +182,7 @@ def replaced_segmentation_scores(pipeline, dataset) -> Tuple[Optional[Dict], Opt
     for index in range(len(dataset)):
         camera = dataset.cameras[index : index + 1].to(pipeline.device)
         preds.append(pipeline.model.render_instance_ids(camera).cpu())
-        gts.append(dataset.get_data(index, image_type="uint8")["instance_mask"][..., 0].long())
+        gts.append(pipeline.datamanager.instance_mask_as_rendered(dataset, index).long())
     scores = segmentation_scores(torch.stack(preds), torch.stack(gts), mapping)
     return {
         "miou": scores["miou"], "macc": scores["macc"], "iou": scores["iou"], "acc": scores["acc"],

@@ -137,10 +137,10 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
             features, alpha, _ = model.render_features(camera, features_of_gaussians)
             preds.append(masks_from_rendered_features(features, alpha, queries, cfg.tau, cfg.min_alpha).cpu())
             if reference_scene is None:
-                gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0])
+                gts.append(pipeline.datamanager.instance_mask_as_rendered(dataset, idx))
             else:
                 gt = cv2.imread(str(gt_paths[Path(dataset.image_filenames[idx]).name]), cv2.IMREAD_UNCHANGED)
-                gts.append(torch.from_numpy(gt.astype(np.int64)))
+                gts.append(pipeline.datamanager.mask_as_rendered(dataset, idx, gt))
         scores = segmentation_scores(torch.stack(preds), torch.stack(gts), pred_to_gt)
         scores["labels"] = selection.labels().cpu()
         scores["failures"] = failures
@@ -152,7 +152,7 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
 
 
 @torch.no_grad()
-def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset) -> Dict:
+def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset, datamanager) -> Dict:
     """Renders fixed per-Gaussian instance labels into a dataset's views and scores them against its masks.
 
     With labels voted from the training views' ground-truth masks this is the best a hard per-Gaussian
@@ -163,6 +163,7 @@ def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset) -> Dict
         model: a SplatReplaceModel (``render_features``).
         labels: [N] ground-truth instance id per Gaussian (0 = background).
         dataset: views carrying ``instance_mask``.
+        datamanager: the run's datamanager (reads each mask in the geometry its camera renders).
 
     Returns:
         :func:`segmentation_scores` over the instances that the labels hold.
@@ -176,5 +177,5 @@ def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset) -> Dict
         # the masks command's own render of labelled Gaussians, borders as rendered
         mask = render_instance_masks(model, camera, labels.long(), max(ids, default=0), None, BorderConfig(method="none"))
         preds.append(torch.from_numpy(mask.astype("int64")))
-        gts.append(dataset.get_data(idx, image_type="uint8")["instance_mask"][..., 0].long())
+        gts.append(datamanager.instance_mask_as_rendered(dataset, idx).long())
     return segmentation_scores(torch.stack(preds), torch.stack(gts), {i: i for i in ids})
