@@ -26,7 +26,7 @@ import torch
 from splatreplace_ns.bench.capture import (
     capture_clicks, ns_process_data, posed_centres, processed_names, training_photos,
 )
-from splatreplace_ns.eval.alignment import apply_similarity, centre_errors, invert_similarity
+from splatreplace_ns.eval.alignment import apply_similarity, centre_errors, invert_similarity, similarity_fit
 from splatreplace_ns.sim import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -127,20 +127,60 @@ def test_stages_render_from_the_cameras_nerfstudio_trains_with(capture, tmp_path
     ours = np.stack(ours)
     errors, fit = centre_errors(ours[:, :3, 3], true_c2w[:, :3, 3])
     assert errors.max() < 0.01 * np.ptp(true_c2w[:, :3, 3], axis=0).max()
-    # seen as the true cameras see: surface points of each true view (from its depth) project through our camera,
-    # intrinsics and distortion included, onto the pixels they came from. COLMAP trades a few pixels of principal
-    # point against ~1° of rotation, so the pixels are the oracle, not the rotation angles.
+    # exactly COLMAP's cameras: each of its 3D points, carried into our frame by the similarity of the camera
+    # centres (exact here: both are the same reconstruction), projects through our camera (intrinsics, distortion
+    # and axes as the stages render) onto the pixel COLMAP observed it at
+    names = [Path(p).name for p in dm.train_dataset.image_filenames]
+    colmap = colmap_reprojection_errors(capture["data"] / "colmap" / "sparse" / "0", names, dm.train_dataset.cameras,
+                                        ours)
+    # and seen as the true cameras see: surface points of each true view (from its depth) land on the pixels they
+    # came from. COLMAP trades a few pixels of principal point against ~1° of rotation, so pixels are the oracle
     depth_of = {Path(f["file_path"]).name: capture["scene"] / f["depth_file_path"]
                 for f in json.loads((capture["scene"] / "transforms.json").read_text())["frames"]}
-    pixel_errors = reprojection_errors(
+    truth = reprojection_errors(
         truth=json.loads((capture["scene"] / "transforms.json").read_text()), true_c2w=true_c2w,
-        depths=[depth_of[photo_of[Path(p).name]] for p in dm.train_dataset.image_filenames],
-        cameras=dm.train_dataset.cameras, fit=fit)
-    print(f"{layout}: reprojection error of the true surface through our cameras: median "
-          f"{np.median(pixel_errors):.2f} px, 99th percentile {np.percentile(pixel_errors, 99):.2f} px")
-    # measured: median 1.2 px, 99th percentile 4.6 px at 256x192 (the centre fit's ~1 cm and COLMAP's distortion
-    # fitted to a pinhole truth); a wrong axis, pose or intrinsic convention is off by tens of pixels
-    assert np.median(pixel_errors) < 2.0 and np.percentile(pixel_errors, 99) < 8.0, np.percentile(pixel_errors, [50, 99])
+        depths=[depth_of[photo_of[name]] for name in names], cameras=dm.train_dataset.cameras, fit=fit)
+    for what, errors in (("COLMAP's points", colmap), ("the true surface", truth)):
+        print(f"{layout}: reprojection of {what} through our cameras: median {np.median(errors):.2f} px, "
+              f"99th percentile {np.percentile(errors, 99):.2f} px")
+    # a wrong axis, pose, intrinsics or distortion convention is off by tens of pixels. COLMAP keeps observations
+    # within 4 px of its own projection: measured median 0.38 px, 95th percentile 1.83, max 3.51. Against the truth
+    # (the centre fit's ~1 cm, COLMAP's distortion fitted to a pinhole truth) two COLMAP runs gave medians of 1.2
+    # and 2.0 px and 99th percentiles of 4.6 and 4.5: that bound is loose, COLMAP's is tight
+    assert np.median(colmap) < 1.0 and np.percentile(colmap, 95) < 3.0 and colmap.max() < 5.0, \
+        np.percentile(colmap, [50, 95, 100])
+    assert np.median(truth) < 4.0 and np.percentile(truth, 99) < 10.0, np.percentile(truth, [50, 99])
+
+
+def project(cameras, k: int, points: np.ndarray) -> np.ndarray:
+    """[M, 2] pixels of world points [M, 3] (the dataparser's frame) in camera ``k`` of nerfstudio ``cameras``
+    (OPENCV distortion: k1, k2, k3, k4, p1, p2), pixel centres at +0.5 as nerfstudio and COLMAP place them."""
+    c2w = cameras.camera_to_worlds[k].double().numpy() @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL → OpenCV axes
+    w2c = np.linalg.inv(np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]]))
+    matrix = np.array([[float(cameras.fx[k]), 0.0, float(cameras.cx[k])],
+                       [0.0, float(cameras.fy[k]), float(cameras.cy[k])], [0.0, 0.0, 1.0]])
+    k1, k2, k3, _, p1, p2 = cameras.distortion_params[k].double().tolist()
+    projected, _ = cv2.projectPoints(np.asarray(points, np.float64), cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], matrix,
+                                     np.array([k1, k2, p1, p2, k3]))
+    return projected.reshape(-1, 2)
+
+
+def colmap_reprojection_errors(sparse: Path, names: list, cameras, ours_c2w: np.ndarray) -> np.ndarray:
+    """Pixel distances [M] between COLMAP's observations of its 3D points and their projections through our
+    cameras (one per name of ``names``, ``ours_c2w`` [N, 4, 4] their poses)."""
+    import pycolmap
+
+    model = pycolmap.Reconstruction(str(sparse))
+    by_name = {image.name: image for image in model.images.values()}
+    images = [by_name[name] for name in names]
+    fit = similarity_fit(np.stack([image.projection_center() for image in images]), ours_c2w[:, :3, 3])
+    out = []
+    for k, image in enumerate(images):
+        seen = [p for p in image.points2D if p.has_point3D()]
+        xyz = np.stack([model.points3D[p.point3D_id].xyz for p in seen])
+        observed = np.stack([p.xy for p in seen])
+        out.append(np.linalg.norm(project(cameras, k, apply_similarity(xyz, *fit)) - observed, axis=1))
+    return np.concatenate(out)
 
 
 def reprojection_errors(truth: dict, true_c2w: np.ndarray, depths: list, cameras, fit, stride: int = 8) -> np.ndarray:
@@ -150,7 +190,7 @@ def reprojection_errors(truth: dict, true_c2w: np.ndarray, depths: list, cameras
         truth: the scene's transforms.json (pinhole intrinsics ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``).
         true_c2w: [N, 4, 4] the true camera→world poses (OpenGL axes), one per camera of ``cameras``.
         depths: N paths of the true 16-bit z-depth PNGs (``depth_unit_scale_factor`` metres per unit, 0 = no hit).
-        cameras: nerfstudio ``Cameras`` [N] (OPENCV distortion: k1, k2, k3, k4, p1, p2) at the truth's image size.
+        cameras: nerfstudio ``Cameras`` [N] at the truth's image size.
         fit: (scale, R, t) mapping our world onto the true one (our camera centres → the true centres).
     """
     to_ours = invert_similarity(*fit)
@@ -164,15 +204,7 @@ def reprojection_errors(truth: dict, true_c2w: np.ndarray, depths: list, cameras
         u, v, z = u[hit] + 0.5, v[hit] + 0.5, z[hit]  # pixel centres, as the renderer casts them
         camera_points = np.stack([(u - truth["cx"]) / truth["fl_x"] * z, -(v - truth["cy"]) / truth["fl_y"] * z, -z], 1)
         world = camera_points @ true_c2w[k, :3, :3].T + true_c2w[k, :3, 3]
-        ours = apply_similarity(world, *to_ours)
-        c2w = cameras.camera_to_worlds[k].double().numpy() @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL → OpenCV axes
-        w2c = np.linalg.inv(np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]]))
-        matrix = np.array([[float(cameras.fx[k]), 0.0, float(cameras.cx[k])],
-                           [0.0, float(cameras.fy[k]), float(cameras.cy[k])], [0.0, 0.0, 1.0]])
-        k1, k2, k3, _, p1, p2 = cameras.distortion_params[k].double().tolist()
-        projected, _ = cv2.projectPoints(ours, cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], matrix,
-                                         np.array([k1, k2, p1, p2, k3]))
-        out.append(np.linalg.norm(projected.reshape(-1, 2) - np.stack([u, v], 1), axis=1))
+        out.append(np.linalg.norm(project(cameras, k, apply_similarity(world, *to_ours)) - np.stack([u, v], 1), axis=1))
     return np.concatenate(out)
 
 
