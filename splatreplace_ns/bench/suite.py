@@ -115,7 +115,8 @@ def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
 
 
 def variant_label(cfg: BenchSuiteConfig) -> str:
-    """"" for the defaults; else what differs, e.g. ``reg-paper`` or ``reg-ours+pipeline.gate.enabled=True``."""
+    """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
+    ``reg-ours+pipeline.gate.enabled=True``."""
     if cfg.registration == "ours" and not cfg.overrides:
         return ""
     return "+".join([f"reg-{cfg.registration}", *cfg.overrides])
