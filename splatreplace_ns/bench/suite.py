@@ -138,8 +138,8 @@ def configure_ours(cfg: BenchSuiteConfig):
     from splatreplace_ns.register.variants import registration_variant
 
     # an unknown variant or override stops here, before anything trains
-    apply_overrides(splat_replace_trainer_config(1, 1, 1), cfg.overrides)
-    registration_variant(cfg.registration, splat_replace_trainer_config(1, 1, 1).pipeline.registration)
+    trial = apply_overrides(splat_replace_trainer_config(1, 1, 1), cfg.overrides)
+    registration_variant(cfg.registration, trial.pipeline.registration)
 
     def configure(trainer_config) -> None:
         pipeline = trainer_config.pipeline
@@ -263,7 +263,8 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         "segmentation_unavailable": segmentation.get("unavailable"),
         "registration": _registration_summary(registration, pipeline.model.registration),
         "replaced": pipeline.model.has_templates,
-        "time_s": {"sim": sim_s, **stages, "ours": times["ours"], "baseline": times["baseline"], "total": time.perf_counter() - start},
+        "time_s": {"sim": sim_s, **stages, "ours": times["ours"], "baseline": times["baseline"],
+                   "total": time.perf_counter() - start},
         "baseline_beside_ours": pair["parallel"],
         "variant": variant_label(cfg) or "defaults",
         "resumed_from_segmentation": cfg.from_segmentation,

@@ -78,8 +78,9 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         if captured.distortion is None:
             return None
         size = (int(image.shape[1]), int(image.shape[0]))
+        K_after = cameras[idx : idx + 1].get_intrinsics_matrices()[0]
         return undistortion_maps(int(cameras.camera_type[idx].item()), captured.K[idx].numpy(),
-                                 captured.distortion[idx].numpy(), cameras.get_intrinsics_matrices()[idx].numpy(), size)
+                                 captured.distortion[idx].numpy(), K_after.numpy(), size)
 
     def train_instance_mask(self, index: int) -> torch.Tensor:
         """[H, W] instance mask of training image ``index`` in the geometry it is trained in (undistorted and
@@ -89,13 +90,15 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
     def _split_of(self, dataset) -> Optional[str]:
         return "train" if dataset is self.train_dataset else "eval" if dataset is self.eval_dataset else None
 
+    def _cached(self, split: str) -> List[Dict]:
+        return self.cached_train if split == "train" else self.cached_eval
+
     def instance_mask_as_rendered(self, dataset, index: int) -> torch.Tensor:
         """[H, W] instance mask of view ``index`` of ``dataset`` in the geometry its camera renders: for this
         datamanager's train or eval dataset the cached mask (undistorted and cropped like its image); for any
         other dataset the mask as stored."""
         split = self._split_of(dataset)
-        data = (self.cached_train if split == "train" else self.cached_eval)[index] if split else \
-            dataset.get_data(index, image_type="uint8")
+        data = self._cached(split)[index] if split else dataset.get_data(index, image_type="uint8")
         if "instance_mask" not in data:
             raise ValueError(f"{dataset.image_filenames[index]}: no instance mask")
         return data["instance_mask"][..., 0]
@@ -116,8 +119,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         values = torch.from_numpy(mask.astype(np.int64))
         if split is None:
             return values
-        cached = (self.cached_train if split == "train" else self.cached_eval)[index]
-        maps = self._undistortion_maps(split, cameras, index, cached["image"])
+        maps = self._undistortion_maps(split, cameras, index, self._cached(split)[index]["image"])
         return values if maps is None else remap_nearest(values[..., None], maps)[..., 0]
 
     @property
