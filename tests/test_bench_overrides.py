@@ -47,10 +47,10 @@ def test_parse_like_keeps_none_fields_open():
 
 
 def test_the_paper_variant_is_section_4_2_as_written():
-    base = RegistrationConfig(select="photometric", multistart_turns=12, upright=True, level_colour=True)
+    base = RegistrationConfig(select="photometric", multistart_turns=12, upright=True)
     paper = registration_variant("paper", base)
     assert paper.select == "inliers" and paper.multistart_turns == 0 and paper.icp and not paper.upright
-    assert paper.same_floor_tolerance == 0 and paper.max_free_space_violation == 0 and not paper.level_colour
+    assert paper.same_floor_tolerance == 0 and paper.max_free_space_violation == 0
     assert paper.min_fitness == 0 and paper.min_opacity == 0 and paper.method == "ours"
     # the matcher and the view sphere are the defaults' (the paper's MASt3R has no offline weights)
     assert (paper.robust_matcher, paper.n_azimuth, paper.top_k) == (base.robust_matcher, base.n_azimuth, base.top_k)
@@ -74,7 +74,6 @@ def test_bench_register_rows_are_the_variants():
     from splatreplace_ns.bench.register import BenchRegisterConfig, row_configs
 
     cfg = BenchRegisterConfig()
-    rows = dict(row_configs(cfg, ("ours", "paper", "no_level_colour", "no_virtual_views")))
+    rows = dict(row_configs(cfg, ("ours", "paper", "no_virtual_views")))
     assert rows["paper"] == registration_variant("paper", cfg.registration)
-    assert rows["no_level_colour"] == registration_variant("no_level_colour", cfg.registration)
     assert rows["no_virtual_views"].method == "no_virtual_views"

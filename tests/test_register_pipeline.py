@@ -338,13 +338,9 @@ def test_choose_candidate_shape_first_then_colour():
     ties = [(0, 0, -k) for k in range(4)]
     # 0: wrong, better colour, worse shape; 1: right; 2: unacceptable (colour below the minimum); 3: dirty
     fitness, colour, violation = [0.535, 0.680, 0.99, 0.95], [0.29, 0.25, 0.05, 0.9], [0.17, 0.17, 0.0, 0.5]
-    chosen, pool = choose_candidate(fitness, colour, violation, ties, cfg)
-    assert chosen == 1 and pool == [0, 1]
-    chosen, _ = choose_candidate(fitness, colour, violation, ties, replace(cfg, colour_fitness_ratio=0.0))
-    assert chosen == 0  # the colour score alone (row no_shape_first)
+    assert choose_candidate(fitness, colour, violation, ties, cfg) == 1
+    assert choose_candidate(fitness, colour, violation, ties, replace(cfg, colour_fitness_ratio=0.0)) == 0  # no_shape_first
     # within the ratio the colour score still decides (0.9 ≥ 0.85 × 0.95)
-    chosen, _ = choose_candidate([0.90, 0.95], [0.6, 0.5], [None, None], ties[:2], cfg)
-    assert chosen == 0
-    # nothing acceptable: still an index (the caller reports the failure), and an empty pool
-    chosen, pool = choose_candidate([0.1, 0.15], [0.5, 0.4], [None, None], ties[:2], cfg)
-    assert chosen in (0, 1) and pool == []
+    assert choose_candidate([0.90, 0.95], [0.6, 0.5], [None, None], ties[:2], cfg) == 0
+    # nothing acceptable: still an index (the caller reports the failure)
+    assert choose_candidate([0.1, 0.15], [0.5, 0.4], [None, None], ties[:2], cfg) in (0, 1)

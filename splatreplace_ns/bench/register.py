@@ -10,7 +10,7 @@ alone. Every instance is then registered onto its class template with
 * ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, multi-start,
   ICP restricted to turns about the floor's normal);
 * ``paper``: §4.2 as written: the top-k pairs' PnP pose with the most inliers, rigid ICP on every centre, every
-  registration accepted (no multi-start, colour score, upright polish, floor, free-space or level-face rule);
+  registration accepted (no multi-start, colour score, upright polish, floor or free-space rule);
 * ``no_upright``: full rigid ICP (the paper's) instead;
 * ``polish_on_centres``: the upright polish aligns the Gaussians' centres instead of the rendered surfaces;
 * ``no_same_floor``: the copy's height from ICP rather than from the floor it shares with the template;
@@ -65,7 +65,7 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "paper", "no_upright", "polish_on_centres", "no_same_floor", "no_shape_first", "no_level_colour", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
+    "ours", "paper", "no_upright", "polish_on_centres", "no_same_floor", "no_shape_first", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
     "icp_from_truth",
 )
 TRUTH_START_ROWS = ("icp_from_truth",)  # rows that start from the ground truth instead of searching
@@ -91,7 +91,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, polish_on_centres, no_same_floor, no_shape_first, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp, icp_from_truth (ours' refinement started from the ground-truth pose)."""
     pairwise: bool = False
     """Also register every ordered pair of copies within each class of three or more instances (settings of
@@ -464,7 +464,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, paper, no_upright, polish_on_centres, no_same_floor, no_shape_first, no_level_colour, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, paper, no_upright, polish_on_centres, no_same_floor, no_shape_first, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp, icp_from_truth"
             )
     return out

@@ -35,7 +35,6 @@ import torch
 from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
 from splatreplace_ns.register.icp import fpfh_ransac, onto_the_same_floor, refine_icp, refine_icp_upright
 from splatreplace_ns.register.errors import geodesic_deg
-from splatreplace_ns.register.level_colour import gaussian_normals, level_colour_difference, prefer_level_colour
 from splatreplace_ns.register.lifting import backproject, rendered_surface
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
@@ -142,20 +141,6 @@ class RegistrationConfig:
             seen copy's lit faces on the template's lit faces can win on colour while fitting the shape clearly
             worse (office's segmented chair 5: 178° off, fitness 0.535 against 0.680 for its right pose). 0: the
             colour score alone (bench register, row ``no_shape_first``).
-        level_colour: after the colour score has chosen, a candidate at another turn that fits the shape about
-            as well (fitness ≥ ``level_colour_fitness_ratio`` × the chosen one's) replaces it when the colours of
-            the level faces (normal along ``up_axis``: tops, seats) agree clearly better
-            (:mod:`~splatreplace_ns.register.level_colour`). Under one light a wrong turn can match a copy's
-            lit side to the template's lit side and win on overall colour; level faces get the same light
-            under every turn. On office's tables (turned by 180° against the template) the right pose's level
-            faces differ by 0.077–0.089 in RGB, the flipped pose's by 0.105–0.126. False: off (bench register,
-            row ``no_level_colour``).
-        level_colour_fitness_ratio: see ``level_colour`` (the tables' right poses fit 0.92–0.94 × as well as
-            their flips; wrong turns of the chairs 0.33–0.65 ×).
-        level_colour_margin: the replacing candidate's level-face difference must be below (1 − margin) × the
-            chosen one's.
-        level_colour_min_pairs: both need this many overlapping level-face centres (a column's few level
-            Gaussians, 0–20 on temple, say nothing).
         seed: RANSAC seed.
     """
 
@@ -198,10 +183,6 @@ class RegistrationConfig:
     free_space_slack: float = 0.05
     free_space_margin_rel: float = 0.15
     colour_fitness_ratio: float = 0.85
-    level_colour: bool = True
-    level_colour_fitness_ratio: float = 0.85
-    level_colour_margin: float = 0.15
-    level_colour_min_pairs: int = 50
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -598,8 +579,8 @@ def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float)
 def choose_candidate(
     fitness: Sequence[float], colour: Sequence[float], violation: Sequence[Optional[float]],
     tiebreak: Sequence[tuple], cfg: RegistrationConfig,
-) -> tuple[int, list[int]]:
-    """Which refined candidate pose to keep (``select="photometric"``), and the pool the level faces may pick from.
+) -> int:
+    """Which refined candidate pose to keep (``select="photometric"``).
 
     In order: acceptable candidates (fitness ≥ ``min_fitness``, colour score ≥ ``min_photometric_fitness``)
     before the others; free space (a candidate that fills clearly more seen-through space than the cleanest
@@ -612,7 +593,7 @@ def choose_candidate(
         violation: (C,) free-space violation, None where unchecked.
         tiebreak: (C,) tuples compared last (e.g. PnP inliers, then the earlier view pair).
     Returns:
-        the chosen index; indices of the acceptable candidates within the free-space slack.
+        the chosen index.
     """
     n = len(fitness)
     acceptable = [fitness[k] >= cfg.min_fitness and colour[k] >= cfg.min_photometric_fitness for k in range(n)]
@@ -621,31 +602,7 @@ def choose_candidate(
     pool = [k for k in range(n) if acceptable[k] and clean[k]]
     best_fit = max((fitness[k] for k in pool), default=0.0)
     fits = [fitness[k] >= cfg.colour_fitness_ratio * best_fit for k in range(n)]
-    chosen = max(range(n), key=lambda k: (acceptable[k], clean[k], fits[k], colour[k], tiebreak[k]))
-    return chosen, pool
-
-
-def _level_colour_choice(chosen, pool, source, template, src_keep, tpl_keep, src_c, tpl_c, src_rgb, tpl_rgb,
-                         radius, cfg: RegistrationConfig):
-    """``chosen`` or a candidate of ``pool`` (refined tuples, index 6 = T, 7 = fitness) whose level faces agree
-    clearly better in colour (:func:`~splatreplace_ns.register.level_colour.prefer_level_colour`); ``src_c``,
-    ``tpl_c``, ``src_rgb``, ``tpl_rgb``: the kept Gaussians' centres and colours. → (tuple, note)"""
-    if len(pool) < 2:
-        return chosen, ""
-    src_n = gaussian_normals(_np(source.quats), _np(source.scales))[src_keep]
-    tpl_n = gaussian_normals(_np(template.quats), _np(template.scales))[tpl_keep]
-    dist = cfg.icp_max_distance_rel * radius
-    diffs = [level_colour_difference(src_c, src_rgb, src_n, tpl_c, tpl_rgb, tpl_n, r[6], dist, cfg.up_axis)
-             for r in pool]
-    at = next(k for k, r in enumerate(pool) if r is chosen)
-    better = prefer_level_colour([r[6] for r in pool], [r[7] for r in pool], diffs, at,
-                                 cfg.level_colour_fitness_ratio, cfg.level_colour_margin, cfg.level_colour_min_pairs)
-    if better is None:
-        return chosen, ""
-    turn = geodesic_deg(pool[better][6][:3, :3], chosen[6][:3, :3])
-    note = (f"level faces chose a turn of {turn:.0f}° from the colour score's pose "
-            f"(difference {diffs[better][0]:.3f} against {diffs[at][0]:.3f})")
-    return pool[better], note
+    return max(range(n), key=lambda k: (acceptable[k], clean[k], fits[k], colour[k], tiebreak[k]))
 
 
 # ----------------------------------------------------------------------------- registration
@@ -758,7 +715,6 @@ def register_instance(
         return fail(f"registration failed, no view pair gave a pose ({detail})")
 
     candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
-    level_note = ""
     if cfg.select == "inliers":  # the paper: the pair with the most PnP inliers, then ICP
         n_inl, i, j, coarse = candidates[0]
         T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
@@ -771,14 +727,9 @@ def register_instance(
             score = _photometric_fitness(src_c, src_rgb, tpl_c, tpl_rgb, T, cfg.icp_max_distance_rel * radius,
                                          cfg.color_tolerance)
             refined.append((_violation(tpl_c, T, radius, cfg, observed), score, n_inl, i, j, coarse, T, fit))
-        at, pool = choose_candidate([r[7] for r in refined], [r[1] for r in refined], [r[0] for r in refined],
-                                    [(r[2], -r[3], -r[4]) for r in refined], cfg)
-        chosen = refined[at]
-        if cfg.level_colour and at in pool:
-            chosen, level_note = _level_colour_choice(
-                chosen, [refined[k] for k in pool], source, template, src_keep, tpl_keep, src_c, tpl_c, src_rgb,
-                tpl_rgb, radius, cfg)
-        _, score, n_inl, i, j, coarse, T, fit = chosen
+        at = choose_candidate([r[7] for r in refined], [r[1] for r in refined], [r[0] for r in refined],
+                              [(r[2], -r[3], -r[4]) for r in refined], cfg)
+        _, score, n_inl, i, j, coarse, T, fit = refined[at]
     chosen_T = T
     T, polish_note = _upright_polish(_polish_points(src_views, src_c, cfg), _polish_points(tpl_views, tpl_c, cfg),
                                      T, radius, cfg)
@@ -794,8 +745,6 @@ def register_instance(
     msg += (", ICP" if cfg.icp else "") + polish_note + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
-    if level_note:
-        msg += f", {level_note}"
     if violation is not None:
         msg += f", free-space violation {violation:.3f}"
     if not ok:

@@ -21,7 +21,6 @@ PAPER_REGISTRATION: Mapping[str, object] = {
     "upright": False,  # full rigid ICP
     "same_floor_tolerance": 0.0,
     "max_free_space_violation": 0.0,
-    "level_colour": False,
     "min_fitness": 0.0,  # every registration is accepted
 }
 """Settings of §4.2 as written (the paper's MASt3R is replaced by the default matcher, which has offline weights)."""
@@ -33,7 +32,6 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "polish_on_centres": {"polish_on": "centres"},  # the upright polish on the centres, not the rendered surface
     "no_same_floor": {"same_floor_tolerance": 0.0},  # the copy's height from ICP, not from the floor both stand on
     "no_shape_first": {"colour_fitness_ratio": 0.0},  # the colour score chooses among every acceptable candidate
-    "no_level_colour": {"level_colour": False},  # the overall colour score alone picks between near-symmetric turns
     "no_free_space": {"max_free_space_violation": 0.0},  # candidates not checked against the space seen through
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
     "no_icp": {"icp": False},
