@@ -337,8 +337,6 @@ def test_row_settings_differ_only_where_the_row_says():
     more = dict(row_configs(BenchRegisterConfig(), ("ours", "no_shape_first")))
     assert ours.colour_fitness_ratio > 0
     assert more["no_shape_first"] == replace(ours, colour_fitness_ratio=0.0)
-    floor = dict(row_configs(BenchRegisterConfig(), ("no_same_floor",)))
-    assert ours.same_floor_tolerance > 0 and floor["no_same_floor"] == replace(ours, same_floor_tolerance=0.0)
     assert rows["no_multistart"] == replace(ours, multistart_turns=0)
     assert rows["no_icp"] == replace(ours, icp=False)
     assert rows["fpfh"] == replace(ours, method="fpfh")

@@ -210,31 +210,3 @@ def refine_icp_upright(
         if abs(step[0]) < 1e-6 and np.linalg.norm(step[1:]) < 1e-6 * max_distance:
             break
     return T, fitness
-
-
-def onto_the_same_floor(T: np.ndarray, up, radius: float, tolerance: float) -> tuple[np.ndarray, bool]:
-    """Sets a turn-about-``up`` transform's lift to zero when it is small: copies on one floor differ by a
-    turn and a slide.
-
-    A turn R about ``up`` keeps ``up · p``, so ``T = [R | t]`` raises every point by ``up · t``: the floor
-    under the source lands on the floor under the template exactly when ``up · t = 0``. ICP estimates that
-    height from the copies' reconstructed centres, whose errors differ from copy to copy; the shared floor
-    fixes it. The turn and the slide are kept as ICP left them: fitting them again with the height held made
-    them worse where a copy's centres sit high (the fit turns and slides it to lay its sloped faces on the
-    template's). A lift larger than ``tolerance × radius`` is a copy standing elsewhere (a shelf, a step) and
-    is kept.
-
-    Args:
-        T: (4, 4) transform whose rotation is a turn about ``up``; up: (3,) the floor's normal; radius: the
-            template's radius; tolerance: the largest lift, as a fraction of ``radius``, counted as zero.
-    Returns:
-        (T with ``up · t = 0``, True) or (T unchanged, False).
-    """
-    u = np.asarray(up, dtype=np.float64)
-    u = u / np.linalg.norm(u)
-    lift = float(u @ T[:3, 3])
-    if not (tolerance > 0 and abs(lift) <= tolerance * radius):
-        return T, False
-    out = np.array(T, dtype=np.float64)
-    out[:3, 3] -= lift * u
-    return out, True

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
-from splatreplace_ns.register.icp import fpfh_ransac, onto_the_same_floor, refine_icp, refine_icp_upright
+from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
 from splatreplace_ns.register.errors import geodesic_deg
 from splatreplace_ns.register.lifting import backproject, rendered_surface
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
@@ -119,11 +119,6 @@ class RegistrationConfig:
             against 1.26° / 1.29 % on the centres. "centres": the solid Gaussians' centres (bench register,
             row ``polish_on_centres``). Candidates are chosen on the centres either way.
         polish_surface_points: cap on the surface points per instance (a fixed random subset).
-        same_floor_tolerance: after the upright refinement, a pose that lifts the source by at most this
-            fraction of the template's radius along the floor's normal is taken to stand on the template's
-            floor: the lift is set to zero (:func:`~splatreplace_ns.register.icp.onto_the_same_floor`). The
-            height then comes from the floor both copies stand on, not from their reconstructed centres. A
-            larger lift (a copy on a shelf or a step) is kept. 0: off (bench register, row ``no_same_floor``).
         max_free_space_violation: when the caller gives the training views' depth (``observed``), every
             candidate places the template at the instance and measures how much of it lies in front of what
             the cameras saw (:func:`~splatreplace_ns.register.free_space.free_space_violation`: mean fraction
@@ -178,7 +173,6 @@ class RegistrationConfig:
     upright_max_tilt_deg: float = 15.0
     polish_on: Literal["surface", "centres"] = "surface"
     polish_surface_points: int = 20000
-    same_floor_tolerance: float = 0.1
     max_free_space_violation: float = 0.4
     free_space_slack: float = 0.05
     free_space_margin_rel: float = 0.15
@@ -469,8 +463,8 @@ def _violation(tpl: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationC
 def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig):
     """The chosen pose refined once more as a turn about ``cfg.up_axis`` plus a translation (finest ICP
     distance), when ``cfg.upright`` and its tilt is at most ``cfg.upright_max_tilt_deg`` (a pose tilted
-    further is not a copy on the same floor; it is left alone), its lift set to zero when it stands on the
-    template's floor. → T, how it was polished for the log ("" when upright is off)."""
+    further is not a copy on the same floor; it is left alone). → T, how it was polished for the log ("" when
+    upright is off)."""
     if not (cfg.upright and cfg.icp):
         return T, ""
     up = np.asarray(cfg.up_axis, dtype=np.float64)
@@ -481,8 +475,7 @@ def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: flo
     polished, _ = refine_icp_upright(src, tgt, T, up, max_distance=cfg.icp_max_distance_rel * radius)
     if not np.isfinite(polished).all():
         return T, ""
-    grounded, same_floor = onto_the_same_floor(polished, up, radius, cfg.same_floor_tolerance)
-    return grounded, " (upright, on the template's floor)" if same_floor else " (upright)"
+    return polished, " (upright)"
 
 
 def _polish_points(views: Optional[InstanceViews], centres: np.ndarray, cfg: RegistrationConfig) -> np.ndarray:
@@ -498,7 +491,7 @@ def _polish_points(views: Optional[InstanceViews], centres: np.ndarray, cfg: Reg
 def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np.ndarray,
                 cfg: Optional[RegistrationConfig] = None) -> tuple[np.ndarray, float, str]:
     """What :func:`register_instance` does to the candidate it chose, from a given pose: ICP on the solid
-    centres (coarse to fine), then the upright polish onto the template's floor (on the rendered surfaces of
+    centres (coarse to fine), then the upright polish about the floor's normal (on the rendered surfaces of
     both from the virtual views, or on the centres; ``cfg.polish_on``).
 
     Args:

@@ -19,7 +19,6 @@ PAPER_REGISTRATION: Mapping[str, object] = {
     "icp": True,  # "ICP on the Gaussian centres, initialised with the coarse pose"
     "min_opacity": 0.0,  # on every centre
     "upright": False,  # full rigid ICP
-    "same_floor_tolerance": 0.0,
     "max_free_space_violation": 0.0,
     "min_fitness": 0.0,  # every registration is accepted
 }
@@ -30,7 +29,6 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "paper": PAPER_REGISTRATION,
     "no_upright": {"upright": False},  # full rigid ICP instead of turns about the floor's normal
     "polish_on_centres": {"polish_on": "centres"},  # the upright polish on the centres, not the rendered surface
-    "no_same_floor": {"same_floor_tolerance": 0.0},  # the copy's height from ICP, not from the floor both stand on
     "no_shape_first": {"colour_fitness_ratio": 0.0},  # the colour score chooses among every acceptable candidate
     "no_free_space": {"max_free_space_violation": 0.0},  # candidates not checked against the space seen through
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
