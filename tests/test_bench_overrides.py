@@ -50,7 +50,6 @@ def test_the_paper_variant_is_section_4_2_as_written():
     base = RegistrationConfig(select="photometric", multistart_turns=12, upright=True)
     paper = registration_variant("paper", base)
     assert paper.select == "inliers" and paper.multistart_turns == 0 and paper.icp and not paper.upright
-    assert paper.max_free_space_violation == 0
     assert paper.min_fitness == 0 and paper.min_opacity == 0 and paper.method == "ours"
     # the matcher and the view sphere are the defaults' (the paper's MASt3R has no offline weights)
     assert (paper.robust_matcher, paper.n_azimuth, paper.top_k) == (base.robust_matcher, base.n_azimuth, base.top_k)

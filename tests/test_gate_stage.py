@@ -17,7 +17,7 @@ from splatreplace_ns.sim import make_scene
 MISPLACED = {}
 
 
-def misregistered(self, instances, classes, config, observed=None):
+def misregistered(self, instances, classes, config):
     """Ground-truth poses, except for one non-template instance whose copy is placed twice its size above it."""
     results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
     victim = next(i for i, r in sorted(results.items()) if r.template_id != i and r.success)

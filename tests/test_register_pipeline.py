@@ -329,18 +329,18 @@ def test_multistart_registers_when_no_view_pair_gives_a_pose(tiny):
 
 
 def test_choose_candidate_shape_first_then_colour():
-    """Order of the candidate choice: acceptable, free space, shape (fitness within the ratio of the best),
-    colour. A wrong pose of a partly seen copy that wins on colour but fits clearly worse (office's segmented
-    chair 5: fitness 0.535 against 0.680) loses; a near-symmetric one that fits as well (a table's flip) does not."""
+    """Order of the candidate choice: acceptable, shape (fitness within the ratio of the best), colour. A wrong
+    pose of a partly seen copy that wins on colour but fits clearly worse (fitness 0.535 against 0.680) loses; one
+    that fits about as well does not."""
     from splatreplace_ns.register.pipeline import choose_candidate
 
     cfg = RegistrationConfig()
-    ties = [(0, 0, -k) for k in range(4)]
-    # 0: wrong, better colour, worse shape; 1: right; 2: unacceptable (colour below the minimum); 3: dirty
-    fitness, colour, violation = [0.535, 0.680, 0.99, 0.95], [0.29, 0.25, 0.05, 0.9], [0.17, 0.17, 0.0, 0.5]
-    assert choose_candidate(fitness, colour, violation, ties, cfg) == 1
-    assert choose_candidate(fitness, colour, violation, ties, replace(cfg, colour_fitness_ratio=0.0)) == 0  # no_shape_first
+    ties = [(0, 0, -k) for k in range(3)]
+    # 0: wrong, better colour, worse shape; 1: right; 2: unacceptable (colour below the minimum)
+    fitness, colour = [0.535, 0.680, 0.99], [0.29, 0.25, 0.05]
+    assert choose_candidate(fitness, colour, ties, cfg) == 1
+    assert choose_candidate(fitness, colour, ties, replace(cfg, colour_fitness_ratio=0.0)) == 0  # no_shape_first
     # within the ratio the colour score still decides (0.9 ≥ 0.85 × 0.95)
-    assert choose_candidate([0.90, 0.95], [0.6, 0.5], [None, None], ties[:2], cfg) == 0
+    assert choose_candidate([0.90, 0.95], [0.6, 0.5], ties[:2], cfg) == 0
     # nothing acceptable: still an index (the caller reports the failure)
-    assert choose_candidate([0.1, 0.15], [0.5, 0.4], [None, None], ties[:2], cfg) in (0, 1)
+    assert choose_candidate([0.1, 0.15], [0.5, 0.4], ties[:2], cfg) in (0, 1)

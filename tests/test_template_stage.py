@@ -21,7 +21,7 @@ FINETUNE = 120
 RUN_STATS = {}
 
 
-def ground_truth_registration(self, instances, classes, config, observed=None):
+def ground_truth_registration(self, instances, classes, config):
     """Stands in for the registration hook: T = P_template · P_instance⁻¹ from the parsed GT poses."""
     return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
 

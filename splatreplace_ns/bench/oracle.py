@@ -101,6 +101,6 @@ def use_ground_truth(pipeline, instances_too: bool, depth_tolerance: float = 0.0
             for i in meta if int(i["id"]) in present
         ]
     # an attribute of this datamanager only: the stage calls it as datamanager.register_instances(...)
-    datamanager.register_instances = lambda instances, classes, config, observed=None: ground_truth_registration(
+    datamanager.register_instances = lambda instances, classes, config: ground_truth_registration(
         instances, classes, poses
     )

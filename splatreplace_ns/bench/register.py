@@ -10,7 +10,7 @@ alone. Every instance is then registered onto its class template with
 * ``ours``: the defaults (25 virtual views per instance, XFeat ranking and matching, PnP, multi-start,
   ICP restricted to turns about the floor's normal);
 * ``paper``: §4.2 as written: the top-k pairs' PnP pose with the most inliers, rigid ICP on every centre, every
-  registration accepted (no multi-start, colour score, upright polish, floor or free-space rule);
+  registration accepted (no multi-start, colour score, or upright polish);
 * ``no_upright``: full rigid ICP (the paper's) instead;
 * ``polish_on_centres``: the upright polish aligns the Gaussians' centres instead of the rendered surfaces;
 * ``no_virtual_views``: the training cameras instead of the virtual sphere;
@@ -64,7 +64,7 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "paper", "no_upright", "polish_on_centres", "no_shape_first", "no_free_space", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
+    "ours", "paper", "no_upright", "polish_on_centres", "no_shape_first", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
     "icp_from_truth",
 )
 TRUTH_START_ROWS = ("icp_from_truth",)  # rows that start from the ground truth instead of searching
@@ -90,7 +90,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, polish_on_centres, no_shape_first, no_free_space, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, polish_on_centres, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp, icp_from_truth (ours' refinement started from the ground-truth pose)."""
     pairwise: bool = False
     """Also register every ordered pair of copies within each class of three or more instances (settings of
@@ -404,13 +404,6 @@ def model_sh_degree(pipeline) -> Optional[int]:
     return min(steps // model_cfg.sh_degree_interval, model_cfg.sh_degree)
 
 
-def observed_training_depth(pipeline):
-    """The training views' rendered depth, as the pipeline hands it to registration's free-space check."""
-    from splatreplace_ns.register.free_space import observed_depth
-
-    return observed_depth(pipeline.scene_depth, pipeline.datamanager.train_dataset.cameras)
-
-
 def load_bench_scene(cfg: BenchRegisterConfig) -> BenchScene:
     """Scene, base model (trained or reused), ground-truth poses and ground-truth labels of the Gaussians."""
     torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
@@ -463,7 +456,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, paper, no_upright, polish_on_centres, no_shape_first, no_free_space, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, paper, no_upright, polish_on_centres, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp, icp_from_truth"
             )
     return out
@@ -509,7 +502,6 @@ def run_row(
     ground_truth: Dict[int, GroundTruthInstance],
     cameras: Optional[Tuple[torch.Tensor, torch.Tensor]],
     missing: Dict[int, str],
-    observed=None,
 ) -> Dict:
     """Registers the instances with one setting and scores every source against the ground truth.
 
@@ -519,7 +511,6 @@ def run_row(
         gt_of: {instance id: ground-truth id or None (unmatched segment)}.
         cameras: training (viewmats, Ks) at the registration image size, for no_virtual_views.
         missing: {instance id: reason} for instances that have no Gaussians (counted as failures).
-        observed: the training views' depth (``register.free_space.ObservedDepth``) for the free-space check.
     """
     if name in TRUTH_START_ROWS:
         t0 = time.perf_counter()
@@ -530,8 +521,7 @@ def run_row(
         for m in (reg.fast_matcher, reg.robust_matcher):
             _matcher_used(m, reg)  # load weights before the clock starts
     t0 = time.perf_counter()
-    results = register_instances(instances, classes, reg, cameras=cameras if reg.method == "no_virtual_views" else None,
-                                 observed=observed)
+    results = register_instances(instances, classes, reg, cameras=cameras if reg.method == "no_virtual_views" else None)
     return score_row(name, reg, results, time.perf_counter() - t0, instances, classes, gt_of, ground_truth, missing)
 
 
@@ -638,7 +628,6 @@ def run_pairwise(
     reg: RegistrationConfig,
     instances: Dict[int, InstanceGaussians],
     ground_truth: Dict[int, GroundTruthInstance],
-    observed=None,
 ) -> Dict[str, Dict]:
     """Every ordered pair (source i, template j) of copies within each class of three or more instances,
     registered with ``reg`` (instances labelled from the ground truth, ids = ground-truth ids).
@@ -666,8 +655,7 @@ def run_pairwise(
         pairs = [(a, b) for a in range(len(ids)) for b in range(len(ids)) if a != b]
         for a, b in track(pairs, description=f"pairwise registration of the {cls} copies", transient=True):
             i, j = ids[a], ids[b]
-            res = register_instance(replace(instances[i], id=i), replace(instances[j], id=j), reg, views[j], None,
-                                    observed)
+            res = register_instance(replace(instances[i], id=i), replace(instances[j], id=j), reg, views[j], None)
             if res.success:
                 src, tpl = ground_truth[i], ground_truth[j]
                 rot[a][b], trans[a][b] = pose_errors(res.transform, src.pose, tpl.pose, src.symmetry, src.bbox_diag)
@@ -683,7 +671,6 @@ def run_rows(
     ground_truth: Dict[int, GroundTruthInstance],
     train_cameras: Tuple[torch.Tensor, torch.Tensor, int, int],
     label: str,
-    observed=None,
 ) -> List[Dict]:
     """Every row on one set of instances; a row whose settings equal an earlier row's reuses its result."""
     from rich.console import Console
@@ -703,7 +690,7 @@ def run_rows(
         else:
             cameras = (viewmats, scale_intrinsics(Ks, (width, height), tuple(reg.image_size)))
             console.log(f"[{label}] row {name} ...")
-            row = run_row(name, reg, present, classes, gt_of, ground_truth, cameras, empty, observed)
+            row = run_row(name, reg, present, classes, gt_of, ground_truth, cameras, empty)
             done.append((reg, row))
         console.log(
             f"[{label}] {name}: rot {row['rot_err_deg_mean']:.3f}° mean / {row['rot_err_deg_max']:.3f}° max, "
@@ -732,8 +719,7 @@ def run_segmentation_rows(cfg: BenchRegisterConfig, rows: List[Tuple[str, Regist
     gt_of = {iid: matched.get(iid, (None, 0.0))[0] for iid in classes}
     instances = instance_gaussians(model, seg_labels, classes, model_sh_degree(pipeline))
     rows = with_floor_up_axes(rows, model.means.detach(), seg_labels)
-    result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation",
-                           observed_training_depth(pipeline))
+    result_rows = run_rows(rows, instances, classes, gt_of, ground_truth, training_views(pipeline), "segmentation")
     hit = {g for g in gt_of.values() if g is not None}
     return {
         "rows": result_rows,
@@ -769,10 +755,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
     instances = instance_gaussians(pipeline.model, scene.gt_labels, ids, model_sh_degree(pipeline))
     classes = {i: scene.ground_truth[i].cls for i in ids}
     turns = nearest_copy_turns(scene.ground_truth)
-    observed = observed_training_depth(pipeline)
     result_rows = run_rows(
         rows, instances, classes, {i: i for i in ids}, scene.ground_truth, training_views(pipeline), "gt masks",
-        observed,
     )
     result: Dict[str, Any] = {
         "benchmark": "register",
@@ -792,7 +776,7 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         if ours is None:  # the floor's up axis as the rows found it
             [(_, ours)] = with_floor_up_axes([("ours", replace(cfg.registration, method="ours"))],
                                              pipeline.model.means.detach(), scene.gt_labels)
-        result["pairwise"] = run_pairwise(ours, instances, scene.ground_truth, observed)
+        result["pairwise"] = run_pairwise(ours, instances, scene.ground_truth)
     if cfg.seg_run is not None:
         seg = run_segmentation_rows(cfg, row_configs(cfg, tuple(cfg.seg_rows or cfg.rows)))
         result["rows_segmentation"] = seg.pop("rows")

@@ -212,7 +212,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         Ks[:, 1] *= height / cameras.height.float().reshape(-1, 1)
         return viewmats, Ks
 
-    def register_instances(self, instances: Dict, classes: Dict[int, str], config, observed=None) -> Dict:
+    def register_instances(self, instances: Dict, classes: Dict[int, str], config) -> Dict:
         """The registration hook (paper §4.2): every instance onto its class template.
 
         Renders the instances through the model's renderer from virtual cameras (or, for the
@@ -221,8 +221,6 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         Args:
             instances: {instance id: ``register.InstanceGaussians``}; classes: {instance id: class name};
             config: ``register.RegistrationConfig``.
-            observed: ``register.free_space.ObservedDepth`` of the training views, for the free-space check
-                (None: no check).
         Returns:
             {instance id: ``register.RegistrationResult``}.
         """
@@ -231,7 +229,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         cameras = None
         if config.method == "no_virtual_views":
             cameras = self.training_view_cameras(*config.image_size)
-        return register_instances(instances, classes, config, cameras=cameras, observed=observed)
+        return register_instances(instances, classes, config, cameras=cameras)
 
 
 @dataclass

@@ -31,7 +31,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.masks.command import ClickMasksConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
-from splatreplace_ns.register.free_space import observed_depth
 from splatreplace_ns.render import world_to_camera
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
@@ -604,13 +603,6 @@ class SplatReplacePipeline(VanillaPipeline):
             )
         return out
 
-    @torch.no_grad()
-    def scene_depth(self, camera: Cameras) -> torch.Tensor:
-        """(H, W) rendered depth of the current scene in one camera, ``inf`` where it is not opaque."""
-        ones = torch.ones(self.model.num_points, 1, device=self.model.means.device)
-        _, alpha, depth = self.model.render_features(camera.to(self.device), features=ones)
-        return torch.where(alpha[..., 0] > 0.5, depth[..., 0], torch.full_like(depth[..., 0], float("inf")))
-
     def run_registration(self) -> Dict[int, Dict]:
         """Registers every segmented instance to its class template (paper §4.2); failures are reported by
         name and those instances stay as they are."""
@@ -624,10 +616,7 @@ class SplatReplacePipeline(VanillaPipeline):
                                                 model.means.detach()[labels > 0])
         if up_message:
             CONSOLE.log(up_message)
-        observed = None
-        if config.max_free_space_violation > 0:
-            observed = observed_depth(self.scene_depth, self.datamanager.train_dataset.cameras)
-        results = self.datamanager.register_instances(instances, classes, config, observed=observed)
+        results = self.datamanager.register_instances(instances, classes, config)
         model.registration = {
             iid: {
                 "template": int(r.template_id), "transform": np.asarray(r.transform).tolist(), "success": bool(r.success),

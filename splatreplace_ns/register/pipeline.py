@@ -32,7 +32,6 @@ from typing import Any, Literal, Optional, Sequence
 import numpy as np
 import torch
 
-from splatreplace_ns.register.free_space import ObservedDepth, free_space_violation
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
 from splatreplace_ns.register.errors import geodesic_deg
 from splatreplace_ns.register.lifting import backproject, rendered_surface
@@ -119,17 +118,6 @@ class RegistrationConfig:
             against 1.26° / 1.29 % on the centres. "centres": the solid Gaussians' centres (bench register,
             row ``polish_on_centres``). Candidates are chosen on the centres either way.
         polish_surface_points: cap on the surface points per instance (a fixed random subset).
-        max_free_space_violation: when the caller gives the training views' depth (``observed``), every
-            candidate places the template at the instance and measures how much of it lies in front of what
-            the cameras saw (:func:`~splatreplace_ns.register.free_space.free_space_violation`: mean fraction
-            of the seeing views); a chosen pose above this is a failure. 0: no free-space check at all.
-        free_space_slack: candidates whose violation exceeds the least one's by more than this lose to every
-            candidate within it, whatever their colour score. On office's segmented instances correct poses
-            scored 0.10–0.25 and a chair turned by 180° (35 % of its size off) about 0.3 against 0.23 for its
-            right pose: the level differs between instances (thin parts blend the rendered depth), the gap
-            between a right and a grossly wrong pose of one instance is what tells them apart.
-        free_space_margin_rel: a template point is in front of a surface only when nearer by more than this
-            fraction of the template's bounding-sphere radius (rendered depth at thin parts is blended).
         colour_fitness_ratio: with select="photometric", the colour score chooses only among the acceptable
             candidates whose fitness is at least this fraction of the best one's (shape first). Under one light
             a side face's colour depends on where it points in the world, so a wrong pose that lays a partly
@@ -173,9 +161,6 @@ class RegistrationConfig:
     upright_max_tilt_deg: float = 15.0
     polish_on: Literal["surface", "centres"] = "surface"
     polish_surface_points: int = 20000
-    max_free_space_violation: float = 0.4
-    free_space_slack: float = 0.05
-    free_space_margin_rel: float = 0.15
     colour_fitness_ratio: float = 0.85
     seed: int = 0
 
@@ -451,15 +436,6 @@ def _refine(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, radius: float, c
     return T, fit
 
 
-def _violation(tpl: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig,
-               observed: Optional[ObservedDepth]) -> Optional[float]:
-    """Free-space violation of the template placed at the source (``T⁻¹ · template``); None when unchecked."""
-    if observed is None or cfg.max_free_space_violation <= 0 or len(observed.depths) == 0:
-        return None
-    inv = np.linalg.inv(T)
-    return free_space_violation(tpl @ inv[:3, :3].T + inv[:3, 3], observed, cfg.free_space_margin_rel * radius)
-
-
 def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: float, cfg: RegistrationConfig):
     """The chosen pose refined once more as a turn about ``cfg.up_axis`` plus a translation (finest ICP
     distance), when ``cfg.upright`` and its tilt is at most ``cfg.upright_max_tilt_deg`` (a pose tilted
@@ -570,32 +546,25 @@ def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float)
 
 
 def choose_candidate(
-    fitness: Sequence[float], colour: Sequence[float], violation: Sequence[Optional[float]],
-    tiebreak: Sequence[tuple], cfg: RegistrationConfig,
+    fitness: Sequence[float], colour: Sequence[float], tiebreak: Sequence[tuple], cfg: RegistrationConfig,
 ) -> int:
     """Which refined candidate pose to keep (``select="photometric"``).
 
     In order: acceptable candidates (fitness ≥ ``min_fitness``, colour score ≥ ``min_photometric_fitness``)
-    before the others; free space (a candidate that fills clearly more seen-through space than the cleanest
-    acceptable one, by more than ``free_space_slack``, loses to every one within it); shape (fitness ≥
-    ``colour_fitness_ratio`` × the best fitness among the acceptable, clean ones); then the colour score; ties
-    go to ``tiebreak`` (larger wins).
+    before the others; shape (fitness ≥ ``colour_fitness_ratio`` × the best fitness among the acceptable
+    ones); then the colour score; ties go to ``tiebreak`` (larger wins).
 
     Args:
         fitness, colour: (C,) ICP fitness and colour score of each candidate.
-        violation: (C,) free-space violation, None where unchecked.
         tiebreak: (C,) tuples compared last (e.g. PnP inliers, then the earlier view pair).
     Returns:
         the chosen index.
     """
     n = len(fitness)
     acceptable = [fitness[k] >= cfg.min_fitness and colour[k] >= cfg.min_photometric_fitness for k in range(n)]
-    least = min((violation[k] for k in range(n) if violation[k] is not None and acceptable[k]), default=None)
-    clean = [least is None or violation[k] is None or violation[k] <= least + cfg.free_space_slack for k in range(n)]
-    pool = [k for k in range(n) if acceptable[k] and clean[k]]
-    best_fit = max((fitness[k] for k in pool), default=0.0)
+    best_fit = max((fitness[k] for k in range(n) if acceptable[k]), default=0.0)
     fits = [fitness[k] >= cfg.colour_fitness_ratio * best_fit for k in range(n)]
-    return max(range(n), key=lambda k: (acceptable[k], clean[k], fits[k], colour[k], tiebreak[k]))
+    return max(range(n), key=lambda k: (acceptable[k], fits[k], colour[k], tiebreak[k]))
 
 
 # ----------------------------------------------------------------------------- registration
@@ -628,7 +597,6 @@ def register_instance(
     cfg: Optional[RegistrationConfig] = None,
     template_views: Optional[InstanceViews] = None,
     cameras: Optional[tuple[Any, Any]] = None,
-    observed: Optional[ObservedDepth] = None,
 ) -> RegistrationResult:
     """Register one instance onto its template (paper §4.2).
 
@@ -639,8 +607,6 @@ def register_instance(
             cfg/cameras) to reuse across sources.
         cameras: (viewmats (V, 4, 4), K) to render both instances from, required by
             ``method="no_virtual_views"`` (ignored otherwise).
-        observed: the training views' depth, for the free-space check (``cfg.max_free_space_violation``);
-            None: no check.
     Returns:
         :class:`RegistrationResult` with ``transform`` (4, 4): template ≈ T · source. Never raises because
         registration fails: ``success=False`` and ``message`` names the instance.
@@ -719,18 +685,16 @@ def register_instance(
             T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
             score = _photometric_fitness(src_c, src_rgb, tpl_c, tpl_rgb, T, cfg.icp_max_distance_rel * radius,
                                          cfg.color_tolerance)
-            refined.append((_violation(tpl_c, T, radius, cfg, observed), score, n_inl, i, j, coarse, T, fit))
-        at = choose_candidate([r[7] for r in refined], [r[1] for r in refined], [r[0] for r in refined],
-                              [(r[2], -r[3], -r[4]) for r in refined], cfg)
-        _, score, n_inl, i, j, coarse, T, fit = refined[at]
+            refined.append((score, n_inl, i, j, coarse, T, fit))
+        at = choose_candidate([r[6] for r in refined], [r[0] for r in refined],
+                              [(r[1], -r[2], -r[3]) for r in refined], cfg)
+        score, n_inl, i, j, coarse, T, fit = refined[at]
     chosen_T = T
     T, polish_note = _upright_polish(_polish_points(src_views, src_c, cfg), _polish_points(tpl_views, tpl_c, cfg),
                                      T, radius, cfg)
-    violation = _violation(tpl_c, T, radius, cfg, observed)
     if T is not chosen_T:  # polished: its fitness changed
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
-    ok = ok and (violation is None or violation <= cfg.max_free_space_violation)
     if i < 0:
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
@@ -738,14 +702,10 @@ def register_instance(
     msg += (", ICP" if cfg.icp else "") + polish_note + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
-    if violation is not None:
-        msg += f", free-space violation {violation:.3f}"
     if not ok:
         msg = (f"{_name(source)}: registration rejected (fitness {fit:.3f}, min {cfg.min_fitness}; "
                f"photometric fitness {score if score is not None else float('nan'):.3f}, "
-               f"min {cfg.min_photometric_fitness}"
-               + (f"; free-space violation {violation:.3f}, max {cfg.max_free_space_violation}"
-                  if violation is not None else "") + ")")
+               f"min {cfg.min_photometric_fitness})")
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
                               time.perf_counter() - t0, (i, j), coarse)
 
@@ -786,7 +746,6 @@ def register_instances(
     classes: dict[int, str],
     cfg: Optional[RegistrationConfig] = None,
     cameras: Optional[tuple[Any, Any]] = None,
-    observed: Optional[ObservedDepth] = None,
 ) -> dict[int, RegistrationResult]:
     """Register every instance to the template of its class.
 
@@ -795,7 +754,6 @@ def register_instances(
         classes: {instance id: class name} (every id of ``instances``).
         cfg: settings (default :class:`RegistrationConfig`).
         cameras: (viewmats (V, 4, 4), K) for ``method="no_virtual_views"``.
-        observed: the training views' depth for the free-space check (None: no check).
     Returns:
         {instance id: :class:`RegistrationResult`}; each template (and a class's only instance) gets the
         identity with ``success=True``.
@@ -824,5 +782,5 @@ def register_instances(
             tpl_views = render_instance_views(template, cfg, use_cams)
         for sid in sources:
             src = instances[sid] if instances[sid].id == sid else replace(instances[sid], id=sid)
-            results[sid] = register_instance(src, template, cfg, tpl_views, cameras, observed)
+            results[sid] = register_instance(src, template, cfg, tpl_views, cameras)
     return {i: results[i] for i in sorted(results)}

@@ -19,7 +19,6 @@ PAPER_REGISTRATION: Mapping[str, object] = {
     "icp": True,  # "ICP on the Gaussian centres, initialised with the coarse pose"
     "min_opacity": 0.0,  # on every centre
     "upright": False,  # full rigid ICP
-    "max_free_space_violation": 0.0,
     "min_fitness": 0.0,  # every registration is accepted
 }
 """Settings of §4.2 as written (the paper's MASt3R is replaced by the default matcher, which has offline weights)."""
@@ -30,7 +29,6 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "no_upright": {"upright": False},  # full rigid ICP instead of turns about the floor's normal
     "polish_on_centres": {"polish_on": "centres"},  # the upright polish on the centres, not the rendered surface
     "no_shape_first": {"colour_fitness_ratio": 0.0},  # the colour score chooses among every acceptable candidate
-    "no_free_space": {"max_free_space_violation": 0.0},  # candidates not checked against the space seen through
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
     "no_icp": {"icp": False},
 }
