@@ -33,7 +33,6 @@ import numpy as np
 import torch
 
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
-from splatreplace_ns.register.errors import geodesic_deg
 from splatreplace_ns.register.lifting import backproject, rendered_surface
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
