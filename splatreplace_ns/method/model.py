@@ -219,6 +219,8 @@ class SplatReplaceModel(SplatfactoModel):
         # segmentation results: per-Gaussian instance (0 = background) and the instances' metadata
         self.instance_labels = torch.zeros(num_points, dtype=torch.long)
         self.instances: List[Dict] = []
+        # replaced instances' own Gaussians, kept until the check after fine-tuning (template/revert.py) has run
+        self.own_gaussians: Dict[int, Dict[str, torch.Tensor]] = {}
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         if self.config.use_exposure_correction:
             self.exposure = Parameter(torch.eye(3, 4).repeat(self.num_train_data, 1, 1))
@@ -310,6 +312,7 @@ class SplatReplaceModel(SplatfactoModel):
             "registration": self.registration,
             "finetune_start": self.finetune_start,
             "base_gaussians": getattr(self, "base_gaussians", 0),
+            "own_gaussians": self.own_gaussians,
         }
 
     def set_extra_state(self, state: Dict) -> None:
@@ -321,6 +324,7 @@ class SplatReplaceModel(SplatfactoModel):
         self.registration = dict(state.get("registration", {}))
         self.finetune_start = state.get("finetune_start")
         self.base_gaussians = int(state.get("base_gaussians", 0))
+        self.own_gaussians = dict(state.get("own_gaussians", {}))
 
     def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
         # The number of Gaussians, the offset slots and the instance count all change during training:

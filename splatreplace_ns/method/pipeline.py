@@ -42,6 +42,7 @@ from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rend
 from splatreplace_ns.segment.voting import Votes, snap_query, vote_training_views, voted_features, votes_from_labels
 from splatreplace_ns.segment.voting import background_query as voting_background_query
 from splatreplace_ns.register.gate import ReplacementGateConfig, gate_registrations
+from splatreplace_ns.template.revert import RevertGateConfig, revert_instances, score_replaced_instances
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.rays import ray_camera
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
@@ -102,6 +103,10 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     """With ``--pipeline.gate.enabled True``, before an instance is replaced its registered pose is checked against
     its training images; a pose that explains them clearly worse than the instance itself, or worse than the same
     pose turned, leaves the instance as it is."""
+    revert: RevertGateConfig = field(default_factory=RevertGateConfig)
+    """Part-way through fine-tuning every replaced instance is compared with its own Gaussians on its training
+    pixels; one whose copy explains them clearly worse gets its own Gaussians back (``--pipeline.revert.enabled
+    False`` turns the check off)."""
 
     @property
     def contrastive_steps(self) -> int:
@@ -201,6 +206,10 @@ class SplatReplacePipeline(VanillaPipeline):
                     self.make_instance_masks()
             if step == self.config.base_iterations + self.config.contrastive_steps - 1:
                 self.run_segmentation()
+            start = self.model.finetune_start
+            if (self.config.revert.enabled and self.model.has_templates and start is not None
+                    and step - int(start) + 1 == self.config.revert.steps_before(self.config.finetune_iterations)):
+                self.revert_harmful_replacements()
         finally:
             self._in_training_callback = False
 
@@ -645,6 +654,8 @@ class SplatReplacePipeline(VanillaPipeline):
             for iid in self.gate_poses(transforms, templates, classes):
                 transforms.pop(iid)
         params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
+        labels = model.instance_labels.to(model.means.device)
+        model.own_gaussians = {i: {k: v[labels == i].clone() for k, v in params.items()} for i in transforms}
         new_params, table = build_templates(
             params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
             merge=model.config.template_union == "merge", merge_cells_per_radius=model.config.template_merge_cells,
@@ -718,6 +729,60 @@ class SplatReplacePipeline(VanillaPipeline):
         CONSOLE.log(f"pose check against the training images: {len(scores)} instances, {len(refused)} refused "
                     f"({time.perf_counter() - start:.1f} s)")
         return refused
+
+    @torch.no_grad()
+    def revert_harmful_replacements(self) -> List[int]:
+        """Do no harm (``splatreplace_ns.template.revert``): every replaced instance whose fine-tuned copy explains
+        its training pixels clearly worse than its own Gaussians gets them back, out of its template. Returns
+        the reverted instance ids; they are marked as not replaced, with the reason."""
+        start = time.perf_counter()
+        model = self.model
+        own = model.own_gaussians
+        if not own:
+            CONSOLE.log("[bold yellow]check after fine-tuning skipped: the instances' own Gaussians are not stored")
+            return []
+        was_training = model.training
+        model.eval()
+        scene = model.composed_scene()
+        gaussians = {"means": scene.means, "quats": scene.quats, "log_scales": scene.log_scales,
+                     "logit_opacities": scene.logit_opacities, "sh": scene.sh}
+        own_sets = {i: {"means": p["means"], "quats": p["quats"], "log_scales": p["scales"],
+                        "logit_opacities": p["opacities"], "sh": torch.cat((p["features_dc"][:, None], p["features_rest"]), 1)}
+                    for i, p in own.items()}
+        cameras = self.datamanager.train_dataset.cameras
+        images = [data["image"] for data in self.datamanager.cached_train]
+
+        def render(view: int, gaussians: Dict[str, torch.Tensor], extra: torch.Tensor):
+            return model.render_gaussian_set(cameras[view : view + 1], gaussians, extra)
+
+        scores = score_replaced_instances(gaussians, scene.instance_id.detach(), own_sets, images, render,
+                                          self.config.revert)
+        model.train(was_training)
+        reverted = sorted(i for i, score in scores.items() if score.revert)
+        for iid, score in scores.items():
+            entry = model.registration.get(iid, {})
+            entry["check_after_finetune"] = score.as_dict()
+            if score.revert:
+                entry["success"] = False
+                entry["message"] = f"instance {iid}: not replaced: {score.reason}"
+                CONSOLE.log(f"[bold yellow]{entry['message']}")
+        if reverted:
+            params = {name: p.detach() for name, p in model.gauss_params.items()}
+            new_params, table, delta = revert_instances(params, model.instance_table, model.instance_pose_delta.detach(),
+                                                        own, reverted)
+            self._swap_parameters(new_params, delta)
+            model.instance_table = table
+            model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
+            if model.finetune_strategy is not None:
+                model.finetune_strategy_state = model.finetune_strategy.initialize_state(scene_scale=1.0)
+            self.selection_controls.show_selected(model.instances, self._not_replaced())
+        model.own_gaussians = {}
+        seconds = time.perf_counter() - start
+        self.registration_report["revert"] = {"time_s": seconds, "checked": sorted(scores), "reverted": reverted}
+        self.registration_report.setdefault("failures", []).extend(reverted)
+        CONSOLE.log(f"check after fine-tuning against the training images: {len(scores)} instances, "
+                    f"{len(reverted)} put back as they were ({seconds:.1f} s)")
+        return reverted
 
     def _finetune_strategy(self):
         """Densification for the templates: no opacity reset (the scene is already trained), refinement
