@@ -9,6 +9,10 @@ The comparison is made on the pixels either version of the instance covers (alph
 where it covers most pixels. Its own Gaussians were fitted to exactly those pixels, so they start ahead; the
 margin says how much worse the copy may do there before the instance is reverted (measured on the dev split,
 see docs/deviations.md). The rest of the scene is the fine-tuned one in both renders.
+
+:func:`revert_instances` then takes a reverted instance out of the instance table and puts its own Gaussians
+back in the background. The class template keeps what the instance's Gaussians brought to it when it was built
+(the union is not rebuilt); the other copies are unchanged.
 """
 
 from __future__ import annotations
