@@ -4,57 +4,31 @@ copies are still replaced."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.bench import oracle
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.eval.report import replacement_report
-from splatreplace_ns.method.train import make_trainer_config, run_training
-from splatreplace_ns.sim import make_scene
 
-MISPLACED = {}
-
-
-def misregistered(self, instances, classes, config):
-    """Ground-truth poses, except for one non-template instance whose copy is placed twice its size above it."""
-    results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
-    victim = next(i for i, r in sorted(results.items()) if r.template_id != i and r.success)
-    size = float(np.ptp(np.asarray(instances[victim].means, dtype=np.float64), axis=0).max())
-    T = np.array(results[victim].transform, dtype=np.float64)
-    T[:3, 3] -= T[:3, :3] @ np.array([0.0, 0.0, 2.0 * size])  # the inverse pose lifts the copy by 2 sizes
-    results[victim].transform = T
-    MISPLACED["id"] = victim
-    return results
+from misplaced_run import train_with_one_misplaced_copy
 
 
 @pytest.fixture(scope="module")
 def gated(tmp_path_factory):
-    data = tmp_path_factory.mktemp("tiny") / "tiny"
-    make_scene("tiny", data, n_train=12)
-    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, 250, 10)
-    config.pipeline.model.warmup_length = 100
-    config.pipeline.datamanager.contrastive_uniform_samples = 1024
-    config.pipeline.datamanager.contrastive_mask_samples = 512
-    config.pipeline.gate.enabled = True
-    config.pipeline.gate.turns = 1  # the refusal itself, not the search for a better turn
-    # this scene's base model fits its own crates at ~20 dB only, so the lifted copy costs 3-9 dB there (the
-    # ground-truth copies at most 2); the default margin is chosen on the dev split's sharper scenes
-    config.pipeline.gate.margin_own_db = 3.0
-    patch = pytest.MonkeyPatch()
-    patch.setattr(SplatReplaceDataManager, "register_instances", misregistered)
-    try:
-        trainer = run_training(config)
-    finally:
-        patch.undo()
-    return trainer
+    def configure(config):
+        config.pipeline.gate.enabled = True
+        config.pipeline.gate.turns = 1  # the refusal itself, not the search for a better turn
+        # this scene's base model fits its own crates at ~20 dB only, so the lifted copy costs 3-9 dB there (the
+        # ground-truth copies at most 2); the default margin is chosen on the dev split's sharper scenes
+        config.pipeline.gate.margin_own_db = 3.0
+        config.pipeline.revert.enabled = False  # this file is about the check before replacement
+
+    return train_with_one_misplaced_copy(tmp_path_factory, 10, configure)
 
 
 def test_the_misplaced_instance_stays_as_it_was_and_the_others_are_replaced(gated):
-    pipeline = gated.pipeline
+    trainer, victim = gated
+    pipeline = trainer.pipeline
     model = pipeline.model
-    victim = MISPLACED["id"]
     entry = model.registration[victim]
     assert not entry["success"] and "not replaced" in entry["message"], (entry["message"], entry.get("gate"))
     assert entry["gate"]["psnr_pose"] < entry["gate"]["psnr_own"] - pipeline.config.gate.margin_own_db
@@ -70,8 +44,8 @@ def test_the_misplaced_instance_stays_as_it_was_and_the_others_are_replaced(gate
 
 
 def test_the_report_and_the_viewer_name_it(gated):
-    pipeline = gated.pipeline
-    victim = MISPLACED["id"]
+    trainer, victim = gated
+    pipeline = trainer.pipeline
     report = replacement_report(pipeline.model)
     assert report[str(victim)]["replaced"] is False and "not replaced" in report[str(victim)]["why"]
     assert report[str(victim)]["pose_check"]["psnr_own"] is not None

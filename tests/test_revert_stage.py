@@ -4,56 +4,29 @@ the viewer's instance list; the other copies stay replaced and training goes on 
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.bench import oracle
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.eval.report import replacement_report
-from splatreplace_ns.method.train import make_trainer_config, run_training
-from splatreplace_ns.sim import make_scene
 
-MISPLACED = {}
-
-
-def misregistered(self, instances, classes, config):
-    """Ground-truth poses, except for one non-template instance whose copy is placed twice its size above it."""
-    results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
-    victim = next(i for i, r in sorted(results.items()) if r.template_id != i and r.success)
-    size = float(np.ptp(np.asarray(instances[victim].means, dtype=np.float64), axis=0).max())
-    T = np.array(results[victim].transform, dtype=np.float64)
-    T[:3, 3] -= T[:3, :3] @ np.array([0.0, 0.0, 2.0 * size])  # the inverse pose lifts the copy by 2 sizes
-    results[victim].transform = T
-    MISPLACED["id"] = victim
-    return results
+from misplaced_run import train_with_one_misplaced_copy
 
 
 @pytest.fixture(scope="module")
 def reverted(tmp_path_factory):
-    data = tmp_path_factory.mktemp("tiny") / "tiny"
-    make_scene("tiny", data, n_train=12)
-    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, 250, 20)
-    config.pipeline.model.warmup_length = 100
-    config.pipeline.datamanager.contrastive_uniform_samples = 1024
-    config.pipeline.datamanager.contrastive_mask_samples = 512
-    assert config.pipeline.revert.enabled and not config.pipeline.gate.enabled  # the defaults
-    # this scene's base model fits its own crates at ~20 dB only (see test_gate_stage): the ground-truth copies
-    # may lose a little to their own Gaussians here, the lifted copy loses far more
-    config.pipeline.revert.margin_db = 3.0
-    patch = pytest.MonkeyPatch()
-    patch.setattr(SplatReplaceDataManager, "register_instances", misregistered)
-    try:
-        trainer = run_training(config)
-    finally:
-        patch.undo()
-    return trainer
+    def configure(config):
+        assert config.pipeline.revert.enabled and not config.pipeline.gate.enabled  # the defaults
+        # this scene's base model fits its own crates at ~20 dB only (see test_gate_stage): the ground-truth copies
+        # may lose a little to their own Gaussians here, the lifted copy loses far more
+        config.pipeline.revert.margin_db = 3.0
+
+    return train_with_one_misplaced_copy(tmp_path_factory, 20, configure)
 
 
 def test_the_misplaced_instance_is_put_back_and_the_others_stay_replaced(reverted):
-    pipeline = reverted.pipeline
+    trainer, victim = reverted
+    pipeline = trainer.pipeline
     model = pipeline.model
-    victim = MISPLACED["id"]
     entry = model.registration[victim]
     assert not entry["success"] and "put back" in entry["message"], entry
     check = entry["check_after_finetune"]
@@ -73,15 +46,16 @@ def test_the_misplaced_instance_is_put_back_and_the_others_stay_replaced(reverte
 
 
 def test_training_went_on_after_the_check(reverted):
-    model = reverted.pipeline.model
+    trainer, victim = reverted
+    model = trainer.pipeline.model
     assert model.stage == "finetune" and model.has_templates
-    outputs = model.get_outputs(reverted.pipeline.datamanager.train_dataset.cameras[0:1].to(model.device))
+    outputs = model.get_outputs(trainer.pipeline.datamanager.train_dataset.cameras[0:1].to(model.device))
     assert torch.isfinite(outputs["rgb"]).all()
 
 
 def test_the_report_and_the_viewer_name_it(reverted):
-    pipeline = reverted.pipeline
-    victim = MISPLACED["id"]
+    trainer, victim = reverted
+    pipeline = trainer.pipeline
     report = replacement_report(pipeline.model)
     assert report[str(victim)]["replaced"] is False and "put back" in report[str(victim)]["why"]
     assert report[str(victim)]["check_after_finetune"]["revert"] is True
