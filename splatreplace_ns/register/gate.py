@@ -119,8 +119,8 @@ PSNR_CAP_DB = 50.0
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:
-    """PSNR (dB, peak 1) over [P, 3] pixels, at most :data:`PSNR_CAP_DB`."""
-    mse = float((pred - target).pow(2).mean())
+    """PSNR (dB, peak 1) over [P, 3] pixels, at most :data:`PSNR_CAP_DB`; NaN pixels count as wrong."""
+    mse = float(torch.nan_to_num((pred.float() - target.float()).pow(2), nan=1.0).mean())
     return PSNR_CAP_DB if mse <= 10.0 ** (-PSNR_CAP_DB / 10.0) else -10.0 * math.log10(mse)
 
 

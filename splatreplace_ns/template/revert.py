@@ -19,21 +19,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
+from splatreplace_ns.register.gate import GAUSSIAN_KEYS, RenderFn, psnr
 from splatreplace_ns.template.build import InstanceTable
-
-GAUSSIAN_KEYS = ("means", "quats", "log_scales", "logit_opacities", "sh")
-
-RenderFn = Callable[[int, Dict[str, Tensor], Tensor], Tuple[Tensor, Tensor]]
-"""(training view index, Gaussians with GAUSSIAN_KEYS, extra features [N, D]) → rgb [H, W, 3] in [0, 1] with
-the scene's background, extra features rendered [H, W, D]."""
-
-PSNR_CAP_DB = 50.0
-"""Beyond this two renders are equal for 8-bit images."""
 
 
 @dataclass
@@ -41,7 +33,7 @@ class RevertGateConfig:
     """Settings of :func:`score_replaced_instances`."""
 
     enabled: bool = True
-    """After fine-tuning, put back the own Gaussians of every instance whose copy explains its training pixels
+    """Part-way through fine-tuning (``at_fraction``), put back the own Gaussians of every instance whose copy explains its training pixels
     worse than they do by more than ``margin_db``."""
     margin_db: float = 1.0
     """dB the fine-tuned copy may lose to the instance's own Gaussians on its training pixels before the
@@ -88,13 +80,6 @@ class RevertScore:
 
     def as_dict(self) -> Dict:
         return {**asdict(self), "loss_db": self.loss_db}
-
-
-def psnr(pred: Tensor, target: Tensor) -> float:
-    """PSNR (dB, peak 1) of [P, 3] against [P, 3], at most :data:`PSNR_CAP_DB`; NaN pixels count as wrong."""
-    err = torch.nan_to_num((pred.float() - target.float()).pow(2), nan=1.0).mean()
-    mse = float(err)
-    return PSNR_CAP_DB if mse <= 10.0 ** (-PSNR_CAP_DB / 10.0) else -10.0 * math.log10(mse)
 
 
 def decide(psnr_replaced: Optional[float], psnr_own: Optional[float], margin_db: float) -> Tuple[bool, str]:
