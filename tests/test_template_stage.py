@@ -32,7 +32,7 @@ def replaced(tmp_path_factory):
     make_scene("tiny", data, n_train=12)
     config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, 250, FINETUNE)
     config.pipeline.model.warmup_length = 100
-    config.pipeline.model.finetune_densify = True  # exercise densification on the templates
+    config.pipeline.model.finetune_densify = "all"  # exercise densification on the templates
     config.pipeline.datamanager.contrastive_uniform_samples = 1024
     config.pipeline.datamanager.contrastive_mask_samples = 512
     patch = pytest.MonkeyPatch()

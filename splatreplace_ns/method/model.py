@@ -129,10 +129,11 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Legendre degree of the sky background over the elevation of the ray (0: one colour)."""
     sky_opacity_lambda: float = 0.1
     """Weight of the L1 that asks for opacity 0 on sky pixels and 1 on surface pixels (sky background only)."""
-    finetune_densify: bool = False
-    """Densify and prune template and background Gaussians during fine-tuning (statistics summed over instances).
-    Off by default: every Gaussian added to a template is rendered once per instance, which on CPU made
-    fine-tuning several times slower per step (office: 1.2 → 4.5 s per step within 300 steps)."""
+    finetune_densify: Literal["off", "background", "all"] = "background"
+    """Densify and prune during the first half of fine-tuning. background: only Gaussians outside the templates
+    grow (the rest of the scene and the instances left as they were keep densifying, as the baseline does through
+    its longer schedule); all: template Gaussians too, with statistics summed over instances (each Gaussian added
+    to a template renders once per instance: on CPU several times slower per step); off: the set stays fixed."""
 
 
 class SplatReplaceModel(SplatfactoModel):
@@ -296,11 +297,11 @@ class SplatReplaceModel(SplatfactoModel):
                 group["params"] = [current]
 
     def step_post_backward(self, step):
-        # Densification and pruning belong to the base stage and, on the templates, to fine-tuning;
-        # the contrastive stage keeps the Gaussian set fixed.
+        # Densification and pruning belong to the base stage and to fine-tuning (of the replaced scene, or of the
+        # segmented one when nothing was replaced); the contrastive stage keeps the Gaussian set fixed.
         if self.stage == "base":
             super().step_post_backward(step)
-        elif self.stage == "finetune" and self.finetune_strategy is not None:
+        elif self.stage in ("finetune", "segmented") and self.finetune_strategy is not None:
             self._finetune_densify(step)
 
     def get_extra_state(self) -> Dict:
@@ -398,24 +399,40 @@ class SplatReplaceModel(SplatfactoModel):
         self.stage = "replaced"
 
     def _finetune_densify(self, step: int) -> None:
-        """Densification on the stored Gaussians with screen-space statistics summed over instances."""
+        """Densification on the stored Gaussians with the screen-space statistics of the rendered ones (a template
+        Gaussian's summed over the instances that render it; none at all with ``finetune_densify=background``)."""
         info = self.info
         means2d = info.get("means2d")
-        if means2d is None or means2d.grad is None or info.get("param_index") is None:
+        if means2d is None or means2d.grad is None:
             return
         radii = info["radii"].reshape(-1)
-        visible = radii > 0
-        grad = means2d.grad.reshape(-1, 2)[visible].clone()
+        param_index = info.get("param_index")
+        if param_index is None:  # the scene is not replaced: rendered Gaussian i is stored Gaussian i
+            param_index = torch.arange(len(radii), device=radii.device)
+        counted = radii > 0
+        if self.config.finetune_densify == "background":
+            counted &= self.gauss_params["template_class"].detach()[param_index, 0] == 0
+        grad = means2d.grad.reshape(-1, 2)[counted].clone()
         packed = grad.detach().clone().requires_grad_(True)
         packed.grad = grad
         packed_info = {
-            "means2d": packed, "radii": radii[visible].float(), "gaussian_ids": info["param_index"][visible],
+            "means2d": packed, "radii": radii[counted].float(), "gaussian_ids": param_index[counted],
             "width": info["width"], "height": info["height"], "n_cameras": 1,
         }
+        params, optimizers = self.gauss_params, self.optimizers
+        if self.stage == "segmented":  # the instance labels follow their Gaussians through splits and prunes
+            labels = Parameter(self.instance_labels.to(radii.device, torch.float32)[:, None], requires_grad=False)
+            params, optimizers = dict(params), dict(optimizers)
+            params["instance_labels"] = labels
+            optimizers["instance_labels"] = torch.optim.SGD([labels], lr=0.0)  # gsplat edits one optimizer per key
         self.finetune_strategy.step_post_backward(
-            params=self.gauss_params, optimizers=self.optimizers, state=self.finetune_strategy_state,
+            params=params, optimizers=optimizers, state=self.finetune_strategy_state,
             step=step - int(self.finetune_start or 0), info=packed_info, packed=True,
         )
+        if params is not self.gauss_params:
+            self.instance_labels = params.pop("instance_labels")[:, 0].round().long().cpu()
+            for name, value in params.items():
+                self.gauss_params[name] = value
 
     def render_features(self, camera: Cameras, features: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Renders per-Gaussian features at full resolution with the geometry detached.

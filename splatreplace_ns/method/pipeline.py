@@ -172,6 +172,9 @@ class SplatReplacePipeline(VanillaPipeline):
                     self.build_shared_templates(start_step=step)
                 else:
                     self.registration_report = {"time_s": 0.0, "failures": [], "skipped": "no instance was selected"}
+                if not self.model.has_templates:  # nothing replaced: the segmented scene fine-tunes (and densifies)
+                    self.model.finetune_start = step
+                    self.model.finetune_strategy, self.model.finetune_strategy_state = self._finetune_strategy()
             return super().get_train_loss_dict(step)
         if self.model.stage == "base":
             CONSOLE.log(f"[bold]step {step}: base stage done ({self.model.num_points} Gaussians); training contrastive features")
@@ -785,19 +788,25 @@ class SplatReplacePipeline(VanillaPipeline):
         return reverted
 
     def _finetune_strategy(self):
-        """Densification for the templates: no opacity reset (the scene is already trained), refinement
-        during the first half of fine-tuning."""
+        """Densification during fine-tuning: no opacity reset (the scene is already trained), refinement every
+        tenth of fine-tuning (at most ``refine_every``) during its first half, ending at least one interval before
+        the check after fine-tuning so that new Gaussians have settled when it compares (``model.finetune_densify``
+        says which Gaussians may grow)."""
         from dataclasses import replace as dc_replace
 
         model = self.model
-        if not model.config.finetune_densify:
+        if model.config.finetune_densify in ("off", False):  # False/True: configs written before the three modes
             return None, {}
-        every = min(model.config.refine_every, max(self.config.finetune_iterations // 4, 1))
+        steps = self.config.finetune_iterations
+        every = min(model.config.refine_every, max(steps // 10, 1))
+        last = steps // 2
+        if self.config.revert.enabled:
+            last = min(last, self.config.revert.steps_before(steps) - every)
         strategy = dc_replace(
             model.strategy,
             refine_every=every,
             refine_start_iter=every,
-            refine_stop_iter=max(self.config.finetune_iterations // 2, 2 * every + 1),
+            refine_stop_iter=max(last + 1, 0),
             reset_every=10**9,
             pause_refine_after_reset=0,
             absgrad=False,

@@ -1,0 +1,88 @@
+"""Densification during fine-tuning (``model.finetune_densify``): by default only Gaussians outside the templates
+grow, as the baseline's do through its longer schedule; when nothing is replaced, the segmented scene densifies
+and its instance labels follow their Gaussians."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from splatreplace_ns.bench import oracle
+from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.pipeline import SplatReplacePipeline
+from splatreplace_ns.method.train import make_trainer_config, run_training
+from splatreplace_ns.sim import make_scene
+
+FINETUNE = 120  # refinements at fine-tuning steps 24, 36 and 48, the check after fine-tuning at 60
+
+
+def _train(tmp_path_factory, register) -> tuple:
+    """Trains the tiny scene with ``register`` as the registration hook; returns (trainer, at the start of
+    fine-tuning: {"template", "background": stored Gaussians of each kind, "points": all, "labels": instance
+    label per stored Gaussian})."""
+    data = tmp_path_factory.mktemp("tiny") / "tiny"
+    make_scene("tiny", data, n_train=12)
+    config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, 250, FINETUNE)
+    config.pipeline.model.warmup_length = 100
+    config.pipeline.datamanager.contrastive_uniform_samples = 1024
+    config.pipeline.datamanager.contrastive_mask_samples = 512
+    assert config.pipeline.model.finetune_densify == "background"  # the default
+    at_start = {}
+    build = SplatReplacePipeline.build_shared_templates
+
+    def counting_build(self, start_step):
+        build(self, start_step)
+        classes = self.model.gauss_params["template_class"][:, 0].round().long()
+        at_start.update(template=int((classes > 0).sum()), background=int((classes == 0).sum()),
+                        labels=self.model.instance_labels.clone(), points=self.model.num_points)
+
+    patch = pytest.MonkeyPatch()
+    patch.setattr(SplatReplaceDataManager, "register_instances", register)
+    patch.setattr(SplatReplacePipeline, "build_shared_templates", counting_build)
+    try:
+        trainer = run_training(config)
+    finally:
+        patch.undo()
+    return trainer, at_start
+
+
+def ground_truth_registration(self, instances, classes, config):
+    return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+
+
+def no_registration(self, instances, classes, config):
+    results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+    for result in results.values():
+        result.success = False
+    return results
+
+
+def test_only_the_background_grows_when_instances_are_replaced(tmp_path_factory):
+    trainer, at_start = _train(tmp_path_factory, ground_truth_registration)
+    model = trainer.pipeline.model
+    assert model.stage == "finetune" and model.has_templates
+    classes = model.gauss_params["template_class"][:, 0].round().long()
+    # templates only lose Gaussians (opacity pruning); the background gained some
+    assert int((classes > 0).sum()) <= at_start["template"]
+    assert int((classes == 0).sum()) > at_start["background"]
+    for name, param in model.gauss_params.items():
+        assert len(param) == len(classes), name
+    scene = model.composed_scene()
+    assert torch.isfinite(scene.means).all() and len(scene.means) == int((classes == 0).sum()) + sum(
+        int((classes == c).sum()) for c in model.instance_table.class_index.tolist())
+
+
+def test_the_segmented_scene_densifies_and_keeps_its_labels_when_nothing_is_replaced(tmp_path_factory):
+    trainer, at_start = _train(tmp_path_factory, no_registration)
+    model = trainer.pipeline.model
+    assert not model.has_templates and model.stage == "segmented"
+    assert at_start["template"] == 0 and at_start["points"] == at_start["background"]  # nothing was replaced
+    labels = model.instance_labels
+    assert len(labels) == model.num_points != at_start["points"]
+    # a split or duplicated Gaussian carries its parent's label: the same instances, each still labelled
+    assert set(labels.unique().tolist()) == set(at_start["labels"].unique().tolist())
+    truth = oracle.dataset_poses(trainer.pipeline.datamanager)
+    for iid in set(labels.unique().tolist()) - {0}:
+        centre = model.means.detach()[labels.to(model.device) == iid].median(dim=0).values.cpu()
+        pose = torch.as_tensor(truth[iid], dtype=torch.float32)
+        assert (centre - pose[:3, 3]).norm() < pose[:3, :3].norm(dim=0).mean(), iid
