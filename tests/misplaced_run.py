@@ -38,8 +38,6 @@ def train_with_one_misplaced_copy(tmp_path_factory, finetune_iterations: int, co
     config.pipeline.model.warmup_length = 100
     config.pipeline.datamanager.contrastive_uniform_samples = 1024
     config.pipeline.datamanager.contrastive_mask_samples = 512
-    # a few fine-tuning steps leave Gaussians grown at their start no time to settle before the checks compare
-    config.pipeline.model.finetune_densify = "off"
     configure(config)
     patch = pytest.MonkeyPatch()
     patch.setattr(SplatReplaceDataManager, "register_instances", misregistered)

@@ -1,6 +1,7 @@
-"""Densification during fine-tuning (``model.finetune_densify``): by default only Gaussians outside the templates
-grow, as the baseline's do through its longer schedule; when nothing is replaced, the segmented scene densifies
-and its instance labels follow their Gaussians."""
+"""Densification during fine-tuning (``model.finetune_densify``, off by default): with ``background`` only
+Gaussians outside the templates grow, as the baseline's do through its longer schedule; when nothing is replaced,
+the segmented scene densifies and its instance labels follow their Gaussians; between refinements nothing changes
+(gsplat's opacity reset at step 0 must not fire at the start of fine-tuning)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import torch
 
 from splatreplace_ns.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.model import SplatReplaceModel
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config, run_training
 from splatreplace_ns.sim import make_scene
@@ -19,14 +21,15 @@ FINETUNE = 120  # refinements at fine-tuning steps 24, 36 and 48, the check afte
 def _train(tmp_path_factory, register) -> tuple:
     """Trains the tiny scene with ``register`` as the registration hook; returns (trainer, at the start of
     fine-tuning: {"template", "background": stored Gaussians of each kind, "points": all, "labels": instance
-    label per stored Gaussian})."""
+    label per stored Gaussian, "quiet_changes": for each densification call that added or removed nothing, the
+    largest change it made to any stored opacity})."""
     data = tmp_path_factory.mktemp("tiny") / "tiny"
     make_scene("tiny", data, n_train=12)
     config = make_trainer_config(data, tmp_path_factory.mktemp("runs"), 400, 250, FINETUNE)
     config.pipeline.model.warmup_length = 100
     config.pipeline.datamanager.contrastive_uniform_samples = 1024
     config.pipeline.datamanager.contrastive_mask_samples = 512
-    assert config.pipeline.model.finetune_densify == "background"  # the default
+    config.pipeline.model.finetune_densify = "background"
     at_start = {}
     build = SplatReplacePipeline.build_shared_templates
 
@@ -36,7 +39,17 @@ def _train(tmp_path_factory, register) -> tuple:
         at_start.update(template=int((classes > 0).sum()), background=int((classes == 0).sum()),
                         labels=self.model.instance_labels.clone(), points=self.model.num_points)
 
+    densify = SplatReplaceModel._finetune_densify
+    at_start["quiet_changes"] = []
+
+    def watched_densify(self, step):
+        before = self.opacities.detach().clone()
+        densify(self, step)
+        if self.num_points == len(before):
+            at_start["quiet_changes"].append(float((self.opacities.detach() - before).abs().max()))
+
     patch = pytest.MonkeyPatch()
+    patch.setattr(SplatReplaceModel, "_finetune_densify", watched_densify)
     patch.setattr(SplatReplaceDataManager, "register_instances", register)
     patch.setattr(SplatReplacePipeline, "build_shared_templates", counting_build)
     try:
@@ -70,6 +83,8 @@ def test_only_the_background_grows_when_instances_are_replaced(tmp_path_factory)
     scene = model.composed_scene()
     assert torch.isfinite(scene.means).all() and len(scene.means) == int((classes == 0).sum()) + sum(
         int((classes == c).sum()) for c in model.instance_table.class_index.tolist())
+    # between refinements densification only gathers statistics: no opacity reset, at the first step either
+    assert at_start["quiet_changes"] and max(at_start["quiet_changes"]) == 0.0
 
 
 def test_the_segmented_scene_densifies_and_keeps_its_labels_when_nothing_is_replaced(tmp_path_factory):

@@ -129,11 +129,12 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Legendre degree of the sky background over the elevation of the ray (0: one colour)."""
     sky_opacity_lambda: float = 0.1
     """Weight of the L1 that asks for opacity 0 on sky pixels and 1 on surface pixels (sky background only)."""
-    finetune_densify: Literal["off", "background", "all"] = "background"
-    """Densify and prune during the first half of fine-tuning. background: only Gaussians outside the templates
-    grow (the rest of the scene and the instances left as they were keep densifying, as the baseline does through
-    its longer schedule); all: template Gaussians too, with statistics summed over instances (each Gaussian added
-    to a template renders once per instance: on CPU several times slower per step); off: the set stays fixed."""
+    finetune_densify: Literal["off", "background", "all"] = "off"
+    """Densify and prune during the first half of fine-tuning. off: the set stays fixed (the default: right after
+    the templates are built nearly every Gaussian passes the growth threshold, and on the tiny test scene each
+    refinement cost 2-3 dB that 100 steps did not win back); background: only Gaussians outside the templates grow;
+    all: template Gaussians too, with statistics summed over instances (each Gaussian added to a template renders
+    once per instance: on CPU several times slower per step)."""
 
 
 class SplatReplaceModel(SplatfactoModel):
@@ -427,7 +428,8 @@ class SplatReplaceModel(SplatfactoModel):
             optimizers["instance_labels"] = torch.optim.SGD([labels], lr=0.0)  # gsplat edits one optimizer per key
         self.finetune_strategy.step_post_backward(
             params=params, optimizers=optimizers, state=self.finetune_strategy_state,
-            step=step - int(self.finetune_start or 0), info=packed_info, packed=True,
+            # counted from 1: gsplat resets every opacity whenever step % reset_every == 0, step 0 included
+            step=step - int(self.finetune_start or 0) + 1, info=packed_info, packed=True,
         )
         if params is not self.gauss_params:
             self.instance_labels = params.pop("instance_labels")[:, 0].round().long().cpu()
