@@ -330,40 +330,6 @@ def test_backproject_rendered_depth_lies_on_surface():
         assert np.abs(pts[:, :2]).max() < 0.6 + 3 * 0.03
 
 
-def test_rendered_surface_lies_on_the_plane_it_renders():
-    """rendered_surface: the pixels opaque enough, over every view, lifted onto the splatted plane z = 0 (two
-    views from straight above at different heights); none from a pixel below min_alpha; capped and repeatable."""
-    from splatreplace_ns.register.lifting import rendered_surface
-    from splatreplace_ns.render import rasterize
-
-    g = torch.linspace(-0.3, 0.3, 25, dtype=torch.float32)
-    xx, yy = torch.meshgrid(g, g, indexing="ij")
-    means = torch.stack([xx.ravel(), yy.ravel(), torch.zeros(xx.numel())], dim=1)
-    n = len(means)
-    W, H = 48, 32
-    depths, alphas, vms = [], [], []
-    for distance in (1.2, 1.6):
-        vm, K = sphere_cameras(np.zeros(3), distance, W, H, 60.0, n_azimuth=1, n_elevation=1,
-                               elevation_range_deg=(90.0, 90.0))
-        out = rasterize(means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.tensor([[0.02, 0.02, 1e-4]]).repeat(n, 1),
-                        torch.full((n,), 0.99), torch.rand(n, 3), torch.from_numpy(vm[0]).float(),
-                        torch.from_numpy(K).float(), W, H)
-        depths.append(out.depth[..., 0].numpy())
-        alphas.append(out.alpha[..., 0].numpy())
-        vms.append(vm[0])
-    depths, alphas, vms = np.stack(depths), np.stack(alphas), np.stack(vms)
-    pts = rendered_surface(depths, alphas, K, vms, min_alpha=0.5, max_points=0)
-    assert len(pts) == int((alphas >= 0.5).sum()) > 0.2 * 2 * W * H
-    assert np.abs(pts[:, 2]).max() < 1e-3 and np.abs(pts[:, :2]).max() < 0.3 + 3 * 0.02
-    # faint pixels (the plane's rim) are left out
-    assert len(rendered_surface(depths, alphas, K, vms, min_alpha=0.999, max_points=0)) < len(pts)
-    capped = rendered_surface(depths, alphas, K, vms, min_alpha=0.5, max_points=100, seed=3)
-    assert capped.shape == (100, 3) and np.array_equal(capped, rendered_surface(depths, alphas, K, vms, 0.5, 100, 3))
-    assert (np.isin(capped.view([("", capped.dtype)] * 3), pts.view([("", pts.dtype)] * 3))).all()
-    # nothing opaque: no points, no error
-    assert rendered_surface(depths, np.zeros_like(alphas), K, vms, 0.5, 100).shape == (0, 3)
-
-
 # ---------------------------------------------------------------- upright ICP and the floor's up axis
 
 TILTED_UP = np.array([0.02, -0.13, 0.99]) / np.linalg.norm([0.02, -0.13, 0.99])

@@ -220,41 +220,15 @@ def test_no_virtual_views_uses_given_cameras(tiny):
 def test_bad_config():
     with pytest.raises(ValueError):
         RegistrationConfig(method="mast3r")
-    with pytest.raises(ValueError, match="polish_on"):
-        RegistrationConfig(polish_on="centers")
 
 
-def test_polish_points_fall_back_to_the_centres():
-    """The polish takes the rendered surface only when it is asked for, the polish runs and the views show
-    something; otherwise the centres it was given."""
-    from splatreplace_ns.register.pipeline import InstanceViews, _polish_points
-
-    centres = np.random.default_rng(0).normal(size=(50, 3))
-    K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
-    depths = np.full((2, 24, 32), 2.0, np.float32)
-    views = InstanceViews(np.zeros((2, 24, 32, 3), np.float32), depths, np.ones((2, 24, 32), np.float32),
-                          np.stack([np.eye(4)] * 2), np.stack([K] * 2))
-    surface = _polish_points(views, centres, RegistrationConfig())
-    assert surface.shape == (2 * 24 * 32, 3) and np.allclose(surface[:, 2], 2.0)
-    blank = replace(views, alphas=np.zeros_like(views.alphas))
-    assert _polish_points(blank, centres, RegistrationConfig()) is centres
-    for cfg in (RegistrationConfig(polish_on="centres"), RegistrationConfig(upright=False), RegistrationConfig(icp=False)):
-        assert _polish_points(views, centres, cfg) is centres
-    assert _polish_points(None, centres, RegistrationConfig()) is centres
-
-
-def test_polish_on_surface_and_on_centres_both_recover_the_oracle_pose(tiny):
-    """The upright polish on the rendered surfaces (default) or on the centres: the oracle crates' poses either
-    way, and the two differ (the surface is really used)."""
+def test_the_upright_polish_recovers_the_oracle_pose(tiny):
+    """The upright polish on the solid centres ends at the oracle crate's pose."""
     g = tiny["gaussians"]
-    results = {}
-    for where in ("surface", "centres"):
-        res = register_instance(g[1], g[2], RegistrationConfig(**FAST, polish_on=where))
-        assert res.success and "(upright)" in res.message
-        rot_err, t_err = pose_errors(res.transform, tiny["poses"][1], tiny["poses"][2], "none", "crate")
-        assert rot_err < 0.5 and t_err < 0.01, (where, rot_err, t_err)
-        results[where] = res.transform
-    assert not np.allclose(results["surface"], results["centres"], atol=1e-9)
+    res = register_instance(g[1], g[2], RegistrationConfig(**FAST))
+    assert res.success and "(upright)" in res.message
+    rot_err, t_err = pose_errors(res.transform, tiny["poses"][1], tiny["poses"][2], "none", "crate")
+    assert rot_err < 0.5 and t_err < 0.01, (rot_err, t_err)
 
 
 def test_solid_selects_opaque_gaussians_with_fallback():

@@ -12,7 +12,6 @@ alone. Every instance is then registered onto its class template with
 * ``paper``: §4.2 as written: the top-k pairs' PnP pose with the most inliers, rigid ICP on every centre, every
   registration accepted (no multi-start, colour score, or upright polish);
 * ``no_upright``: full rigid ICP (the paper's) instead;
-* ``polish_on_centres``: the upright polish aligns the Gaussians' centres instead of the rendered surfaces;
 * ``no_virtual_views``: the training cameras instead of the virtual sphere;
 * ``no_icp``: without the ICP refinement;
 * ``matcher:NAME``: each matcher of ``splatreplace_ns.register.matching.MATCHERS`` as the robust matcher
@@ -64,7 +63,7 @@ from splatreplace_ns.segment.gt_labels import labels_from_masks
 from splatreplace_ns.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "paper", "no_upright", "polish_on_centres", "no_shape_first", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
+    "ours", "paper", "no_upright", "no_shape_first", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
     "icp_from_truth",
 )
 TRUTH_START_ROWS = ("icp_from_truth",)  # rows that start from the ground truth instead of searching
@@ -90,7 +89,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, polish_on_centres, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp, icp_from_truth (ours' refinement started from the ground-truth pose)."""
     pairwise: bool = False
     """Also register every ordered pair of copies within each class of three or more instances (settings of
@@ -456,7 +455,7 @@ def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[s
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, paper, no_upright, polish_on_centres, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, paper, no_upright, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp, icp_from_truth"
             )
     return out

@@ -65,36 +65,3 @@ def backproject(
     rot, t = vm[:3, :3], vm[:3, 3]
     world = (cam - t) @ rot  # R^T (x - t)
     return world, valid
-
-
-def rendered_surface(
-    depths: np.ndarray, alphas: np.ndarray, Ks: np.ndarray, viewmats: np.ndarray, min_alpha: float,
-    max_points: int, seed: int = 0,
-) -> np.ndarray:
-    """World points of a rendered surface: every pixel at least ``min_alpha`` opaque, back-projected with its
-    z-depth, over all views; at most ``max_points`` of them (a fixed random subset, so the same renders give
-    the same points).
-
-    Args:
-        depths, alphas: (V, H, W) expected z-depth and opacity; Ks: (3, 3) or (V, 3, 3); viewmats: (V, 4, 4)
-            world→camera (OpenCV).
-        min_alpha: opacity a pixel needs to count as surface.
-        max_points: cap on the points returned (≤ 0: no cap).
-        seed: seed of the subset.
-    Returns:
-        (M, 3) float64.
-    """
-    depths, alphas = _np(depths), _np(alphas)
-    V, H, W = depths.shape
-    Ks = np.broadcast_to(_np(Ks).reshape(-1, 3, 3), (V, 3, 3))
-    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)
-    points = []
-    for v in range(V):
-        keep = alphas[v].ravel() >= min_alpha
-        world, valid = backproject(pixels[keep], depths[v], Ks[v], _np(viewmats)[v])
-        points.append(world[valid])
-    out = np.concatenate(points) if points else np.zeros((0, 3))
-    if 0 < max_points < len(out):
-        out = out[np.sort(np.random.default_rng(seed).choice(len(out), max_points, replace=False))]
-    return out

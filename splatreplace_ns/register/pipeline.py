@@ -27,13 +27,13 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
 
 from splatreplace_ns.register.icp import fpfh_ransac, refine_icp, refine_icp_upright
-from splatreplace_ns.register.lifting import backproject, rendered_surface
+from splatreplace_ns.register.lifting import backproject
 from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_pairs
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
 from splatreplace_ns.register.up_axis import floor_up_axis
@@ -109,14 +109,6 @@ class RegistrationConfig:
             that really leans or lies on its side). Free ICP on a sparse copy tilts it by several degrees:
             with 5° a chess pawn tilted 5.2° (5.1° off, 4.1 % of its diagonal; upright 0.3°, 1.0 %) and an
             office chair tilted past it kept 9.9° of error.
-        polish_on: the points the upright refinement aligns. "surface": each instance's rendered surface,
-            back-projected from its virtual views' depth where they are at least ``min_alpha`` opaque (at most
-            ``polish_surface_points``). A 3DGS fit places its Gaussians' centres off the true surface by
-            amounts that differ from copy to copy; the rendered surface averages them. Started from the true
-            pose on chess at 160×120 the refinement ends at 0.32° / 0.91 % of the diagonal on the surface
-            against 1.26° / 1.29 % on the centres. "centres": the solid Gaussians' centres (bench register,
-            row ``polish_on_centres``). Candidates are chosen on the centres either way.
-        polish_surface_points: cap on the surface points per instance (a fixed random subset).
         colour_fitness_ratio: with select="photometric", the colour score chooses only among the acceptable
             candidates whose fitness is at least this fraction of the best one's (shape first). Under one light
             a side face's colour depends on where it points in the world, so a wrong pose that lays a partly
@@ -158,16 +150,12 @@ class RegistrationConfig:
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     upright: bool = True
     upright_max_tilt_deg: float = 15.0
-    polish_on: Literal["surface", "centres"] = "surface"
-    polish_surface_points: int = 20000
     colour_fitness_ratio: float = 0.85
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"RegistrationConfig.method must be one of {METHODS}, got {self.method!r}")
-        if self.polish_on not in ("surface", "centres"):
-            raise ValueError(f"RegistrationConfig.polish_on must be 'surface' or 'centres', got {self.polish_on!r}")
         if self.select not in ("inliers", "photometric"):
             raise ValueError(f"RegistrationConfig.select must be 'inliers' or 'photometric', got {self.select!r}")
         if self.top_k < 1 or self.n_azimuth < 1 or self.n_elevation < 1:
@@ -453,21 +441,10 @@ def _upright_polish(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, radius: flo
     return polished, " (upright)"
 
 
-def _polish_points(views: Optional[InstanceViews], centres: np.ndarray, cfg: RegistrationConfig) -> np.ndarray:
-    """The points the upright polish aligns (``cfg.polish_on``): the rendered surface of ``views``, or the
-    solid ``centres`` (also when the polish is off, when there are no views or they show nothing)."""
-    if cfg.polish_on != "surface" or views is None or not (cfg.upright and cfg.icp):
-        return centres
-    surface = rendered_surface(views.depths, views.alphas, views.Ks, views.viewmats, cfg.min_alpha,
-                               cfg.polish_surface_points, cfg.seed)
-    return surface if len(surface) >= 4 else centres
-
-
 def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np.ndarray,
                 cfg: Optional[RegistrationConfig] = None) -> tuple[np.ndarray, float, str]:
     """What :func:`register_instance` does to the candidate it chose, from a given pose: ICP on the solid
-    centres (coarse to fine), then the upright polish about the floor's normal (on the rendered surfaces of
-    both from the virtual views, or on the centres; ``cfg.polish_on``).
+    centres (coarse to fine), then the upright polish about the floor's normal on the same centres.
 
     Args:
         source, template: the two instances; init: (4, 4) pose with template ≈ init · source; cfg: settings.
@@ -479,11 +456,7 @@ def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np
     src_c = source.centres()[source.solid(cfg.min_opacity, cfg.min_solid_points)]
     tpl_c = template.centres()[template.solid(cfg.min_opacity, cfg.min_solid_points)]
     T, fit = _refine(src_c, tpl_c, np.asarray(init, dtype=np.float64), radius, cfg)
-    surface = cfg.polish_on == "surface" and cfg.upright and cfg.icp
-    src_views = render_instance_views(source, cfg) if surface else None
-    tpl_views = render_instance_views(template, cfg) if surface else None
-    polished, note = _upright_polish(_polish_points(src_views, src_c, cfg), _polish_points(tpl_views, tpl_c, cfg),
-                                     T, radius, cfg)
+    polished, note = _upright_polish(src_c, tpl_c, T, radius, cfg)
     if polished is not T:
         fit = _fitness(src_c, tpl_c, polished, cfg.icp_max_distance_rel * radius)
     return polished, fit, note
@@ -689,8 +662,7 @@ def register_instance(
                               [(r[1], -r[2], -r[3]) for r in refined], cfg)
         score, n_inl, i, j, coarse, T, fit = refined[at]
     chosen_T = T
-    T, polish_note = _upright_polish(_polish_points(src_views, src_c, cfg), _polish_points(tpl_views, tpl_c, cfg),
-                                     T, radius, cfg)
+    T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
     if T is not chosen_T:  # polished: its fitness changed
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
