@@ -551,3 +551,61 @@ def test_masks_made_from_other_clicks_are_made_again(base_run, tmp_path):
     clicks = json.loads((data / "clicks.json").read_text())
     (data / "clicks.json").write_text(json.dumps(clicks[:2]))  # one instance fewer
     assert setup_trainer(make_trainer_config(data, tmp_path / "runs", 10, 10)).pipeline._masks_stale
+
+
+def test_interior_pixel_is_the_centre_of_the_largest_inscribed_disc():
+    from splatreplace_ns.segment.clicks import interior_pixel
+
+    region = np.zeros((48, 64), bool)
+    assert interior_pixel(region) is None
+    region[10:31, 30:51] = True  # a 21x21 square: its centre is the only pixel 11 from every side
+    region[40:43, 0:3] = True  # a smaller piece elsewhere does not win
+    assert interior_pixel(region) == (40.0, 20.0)
+    full = np.ones((5, 5), bool)  # the image border counts as the region's border
+    assert interior_pixel(full) == (2.0, 2.0)
+
+
+def test_a_click_outside_the_mask_it_made_takes_its_query_inside_it(base_run, tmp_path):
+    """Masks made from clicks are coarse and can miss the very pixel a click made them from; the contrastive
+    stage then learns the background's feature there and the click selects nothing. The query pixel moves to
+    the interior of the click's own mask in that view; a click inside its mask, or masks made from other clicks,
+    keep the clicked pixel."""
+    from splatreplace_ns.method.train import make_trainer_config, setup_trainer
+
+    _, capture, _ = base_run
+    data = tmp_path / "capture"
+    shutil.copytree(capture, data)
+    clicks = json.loads((data / "clicks.json").read_text())
+    meta = read_dataset_meta(data)
+    frame = next(f for f in meta["frames"] if Path(f["file_path"]).name == Path(clicks[0]["file_path"]).name)
+    u, v = clicks[0]["xy"]
+    mask = np.zeros((48, 64), np.uint16)
+    # instance 1 (click 0) a 9x9 square away from the click; instance 2 (click 1) over the clicked pixel
+    top, left = (2, 2) if v > 24 else (37, 2)
+    left = 53 if u < 32 else left
+    mask[top : top + 9, left : left + 9] = 1
+    mask[max(int(v) - 3, 0) : int(v) + 4, max(int(u) - 3, 0) : int(u) + 4] = 2
+    cv2.imwrite(str(data / frame["instance_mask_path"]), mask)
+
+    pipeline = setup_trainer(make_trainer_config(data, tmp_path / "runs", 10, 10)).pipeline
+    loaded = load_clicks_of(data)
+    index = pipeline.train_index_of(loaded[0].file_path)
+    assert pipeline.click_pixel(index, loaded[0], "click 0") == (left + 4.0, top + 4.0)
+    # the same click inside its own mask keeps its pixel
+    mask[max(int(v) - 3, 0) : int(v) + 4, max(int(u) - 3, 0) : int(u) + 4] = 1
+    cv2.imwrite(str(data / frame["instance_mask_path"]), mask)
+    pipeline.datamanager.reload_instance_masks()
+    assert pipeline.click_pixel(index, loaded[0], "click 0") == (float(u), float(v))
+    # masks made from other clicks (clicks.json changed since): the clicked pixel, as the paper takes it
+    mask[max(int(v) - 3, 0) : int(v) + 4, max(int(u) - 3, 0) : int(u) + 4] = 2
+    cv2.imwrite(str(data / frame["instance_mask_path"]), mask)
+    (data / "clicks.json").write_text(json.dumps(clicks + [clicks[0]]))
+    pipeline.datamanager.reload_instance_masks()
+    changed = load_clicks_of(data)
+    assert pipeline.click_pixel(index, changed[0], "click 0") == (float(u), float(v))
+
+
+def load_clicks_of(data: Path):
+    from splatreplace_ns.segment.clicks import load_clicks
+
+    return load_clicks(data / "clicks.json")

@@ -231,15 +231,17 @@ def test_ns_train_runs_the_method_from_the_photos(capture, tmp_path):
     (tmp_path / "ns-train.log").write_text(result.stdout + result.stderr)
     log = re.sub(r"\s+", " ", result.stdout + result.stderr)
     skipped = re.findall(r"masks: skipped [^\[]*", log)
+    # what the masks and segmentation steps said, for a failure's message
+    stages = re.findall(r"(?:skipped|masks:|segmentation:|instance \d+ \(|click \d+ \()[^\[]{0,200}", log)
     print(f"ns-train: {time.perf_counter() - start:.0f} s")
     assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
 
     clicks = json.loads((data / "clicks.json").read_text())
     truth = json.loads((capture["scene"] / "transforms.json").read_text())
     classes = {i["id"]: i["class"] for i in truth["instances"]}
-    assert re.search(rf"segmentation: {len(clicks)} instances", log), (skipped, log[-3000:])
+    assert re.search(rf"segmentation: {len(clicks)} instances", log), stages
     for k, click in enumerate(clicks):
-        assert re.search(rf"instance \d+ \({classes[click['id']]}\): \d+ Gaussians from click {k}\b", log), k
+        assert re.search(rf"instance \d+ \({classes[click['id']]}\): \d+ Gaussians from click {k}\b", log), (k, stages)
     assert re.search(rf"registration: {len(clicks)} instances in {len(set(classes.values()))} classes", log)
     shared = re.search(r"shared templates: (\d+) classes, (\d+) instances", log)
     # at this budget the instances are small (tens of Gaussians): at least one is registered and replaced

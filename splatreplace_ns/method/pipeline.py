@@ -17,7 +17,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -35,7 +35,9 @@ from splatreplace_ns.render import world_to_camera
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask
 from splatreplace_ns.datamanager.validate import image_size
-from splatreplace_ns.segment.clicks import Click, check_clicks, clicks_digest, clicks_file_appeared, load_clicks
+from splatreplace_ns.segment.clicks import (
+    Click, check_clicks, clicks_digest, clicks_file_appeared, interior_pixel, load_clicks, pixel_index,
+)
 from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
@@ -227,18 +229,27 @@ class SplatReplacePipeline(VanillaPipeline):
         data = Path(self.datamanager.get_datapath())
         return data if data.suffix == ".json" else data / "transforms.json"
 
+    def _click_masks_digest(self) -> Optional[str]:
+        """Fingerprint of the clicks the dataset's masks were made from; None when its masks are not made from
+        clicks (ground truth, a person's) or it has none."""
+        from splatreplace_ns.datamanager.click_masks import CLICKS_DIGEST_KEY, MASKS_SOURCE_KEY, with_click_masks
+
+        if not self.datamanager.has_instance_masks:
+            return None
+        transforms = self.transforms_path()
+        meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
+        if meta.get(MASKS_SOURCE_KEY) != "clicks":
+            return None
+        return meta.get(CLICKS_DIGEST_KEY) or None
+
     def _masks_made_from_other_clicks(self) -> bool:
         """Whether the dataset's masks were made (``splatreplace masks`` or an earlier run) from clicks other than
         those of clicks.json now: then they are made again after the base stage, or the contrastive stage would
         train on the old instances while the new clicks select."""
-        from splatreplace_ns.datamanager.click_masks import CLICKS_DIGEST_KEY, MASKS_SOURCE_KEY, with_click_masks
-
-        if not self.datamanager.has_instance_masks or not self.clicks_path().exists():
+        if not self.clicks_path().exists():
             return False
-        transforms = self.transforms_path()
-        meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
-        made_from = meta.get(CLICKS_DIGEST_KEY)
-        if meta.get(MASKS_SOURCE_KEY) != "clicks" or not made_from:
+        made_from = self._click_masks_digest()
+        if made_from is None:
             return False
         if clicks_digest(load_clicks(self.clicks_path())) == made_from:
             return False
@@ -462,10 +473,34 @@ class SplatReplacePipeline(VanillaPipeline):
         source = f"click {click.index} ({click.file_path} at {click.xy})"
         index = self.train_index_of(click.file_path)
         features, alpha, _ = self.model.render_features(self.train_camera(index), self.selection_features())
-        u, v = self.datamanager.train_pixel(index, click.xy)  # the training image may be undistorted and cropped
+        u, v = self.click_pixel(index, click, source)
         query = self._click_query(features, alpha, u, v, source)
         instance = self.selection.add(query, click.cls, source)
         CONSOLE.log(f"instance {instance.id} ({instance.cls}): {instance.num_gaussians} Gaussians from {source}")
+
+    def click_pixel(self, index: int, click: Click, source: str) -> Tuple[float, float]:
+        """(u, v) in training view ``index`` (as cached: undistorted and cropped with a distorted camera) whose
+        rendered feature becomes ``click``'s query: the clicked pixel, except when the dataset's masks were made
+        from these very clicks (click k → instance k + 1) and the pixel lies outside its own instance's mask in
+        that view. A coarse mask can miss the pixel it was made from; the contrastive stage then learnt the
+        background's feature there, and the query is taken at the mask's interior-most pixel instead."""
+        u, v = self.datamanager.train_pixel(index, click.xy)
+        made_from = self._click_masks_digest()
+        if made_from is None or not self.clicks_path().exists():
+            return u, v
+        clicks = load_clicks(self.clicks_path())
+        if clicks_digest(clicks) != made_from or click.index >= len(clicks) or clicks[click.index] != click:
+            return u, v  # masks of other clicks, or a click that is not one of those that made them
+        own = self.datamanager.train_instance_mask(index).cpu().numpy() == click.index + 1
+        pixel = pixel_index(u, v, own.shape[1], own.shape[0])
+        if pixel is None or own[pixel]:
+            return u, v
+        inner = interior_pixel(own)
+        if inner is None:  # the instance is not in this view's mask (or the click made none): nothing better
+            return u, v
+        CONSOLE.log(f"{source}: outside the mask it made in its view; its query is taken at the mask's interior "
+                    f"pixel ({inner[0]:.0f}, {inner[1]:.0f})")
+        return inner
 
     @torch.no_grad()
     def query_from_ray(self, origin, direction) -> torch.Tensor:

@@ -33,6 +33,22 @@ def pixel_index(u: float, v: float, width: int, height: int) -> Optional[Tuple[i
     return row, col
 
 
+def interior_pixel(region: "np.ndarray") -> Optional[Tuple[float, float]]:
+    """(u, v) = (column, row) of the pixel of ``region`` ([H, W] bool) farthest from its border (the centre of its
+    largest inscribed disc), or None when it is empty. A query taken there is the region's own feature, not a
+    blend with what surrounds it."""
+    import cv2
+    import numpy as np
+
+    inside = np.ascontiguousarray(region, dtype=np.uint8)
+    if not inside.any():
+        return None
+    # pad with background so that the image border counts as the region's border
+    distance = cv2.distanceTransform(np.pad(inside, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    row, col = np.unravel_index(int(np.argmax(distance)), distance.shape)
+    return float(col), float(row)
+
+
 def resized_pixel(xy: Tuple[float, float], factor: float) -> Tuple[float, float]:
     """The same point of the picture in the image resized by ``factor`` (0.25: nerfstudio's images_4), in pixel
     index coordinates (pixel k's centre at k): the picture's continuous coordinate x + 0.5 scales with the image."""
