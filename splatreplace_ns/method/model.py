@@ -223,6 +223,8 @@ class SplatReplaceModel(SplatfactoModel):
         self.instances: List[Dict] = []
         # replaced instances' own Gaussians, kept until the check after fine-tuning (template/revert.py) has run
         self.own_gaussians: Dict[int, Dict[str, torch.Tensor]] = {}
+        # [N] instance each background Gaussian is a leftover of, while carving waits for registration (0: none)
+        self.carve_owner: Optional[torch.Tensor] = None
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         if self.config.use_exposure_correction:
             self.exposure = Parameter(torch.eye(3, 4).repeat(self.num_train_data, 1, 1))
@@ -315,6 +317,7 @@ class SplatReplaceModel(SplatfactoModel):
             "finetune_start": self.finetune_start,
             "base_gaussians": getattr(self, "base_gaussians", 0),
             "own_gaussians": self.own_gaussians,
+            "carve_owner": self.carve_owner,
         }
 
     def set_extra_state(self, state: Dict) -> None:
@@ -327,6 +330,7 @@ class SplatReplaceModel(SplatfactoModel):
         self.finetune_start = state.get("finetune_start")
         self.base_gaussians = int(state.get("base_gaussians", 0))
         self.own_gaussians = dict(state.get("own_gaussians", {}))
+        self.carve_owner = state.get("carve_owner")
 
     def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
         # The number of Gaussians, the offset slots and the instance count all change during training:

@@ -33,7 +33,7 @@ from splatreplace_ns.masks.command import ClickMasksConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.render import world_to_camera
 from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
-from splatreplace_ns.segment.carving import carve_mask
+from splatreplace_ns.segment.carving import carve_mask, carved_instance
 from splatreplace_ns.datamanager.validate import image_size
 from splatreplace_ns.segment.clicks import (
     Click, check_clicks, clicks_digest, clicks_file_appeared, interior_pixel, load_clicks, pixel_index,
@@ -62,6 +62,10 @@ class SegmentationConfig:
     otherwise at the end of the contrastive stage). never: a capture without masks then needs clicks.json."""
     carve: bool = True
     """Remove leftover background Gaussians by space carving."""
+    carve_only_replaced: bool = False
+    """Carve after registration, and only the leftovers of instances that are replaced: an instance left as it
+    was keeps the Gaussians its selection missed. False: the paper's, every instance's leftovers at the end of
+    segmentation."""
     depth_tolerance: float = 0.02
     """Relative depth margin for the carving visibility test."""
     carve_mask_tolerance: int = 1
@@ -569,6 +573,7 @@ class SplatReplacePipeline(VanillaPipeline):
             model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
             model.instances = []
             model.stage = "segmented"
+            model.carve_owner = None
             self.segmentation_report = {"instances": [], "mask_coverage": {}, "carved": 0, "gaussians": model.num_points,
                                         "instance_gaussians": 0}
             CONSOLE.log("[bold yellow]segmentation: no instance was selected, so nothing is replaced: the scene is "
@@ -595,7 +600,8 @@ class SplatReplacePipeline(VanillaPipeline):
             CONSOLE.log(f"[bold yellow]segmentation: {message}")
 
         background = labels == 0
-        removed = 0
+        removed = deferred = 0
+        model.carve_owner = None
         if cfg.carve and bool(background.any()):
             viewmats = world_to_camera(cameras.camera_to_worlds.to(self.device))
             Ks = cameras.get_intrinsics_matrices().to(self.device)
@@ -606,14 +612,17 @@ class SplatReplacePipeline(VanillaPipeline):
             )
             drop = torch.zeros_like(background)
             drop[background] = carve
+            if cfg.carve_only_replaced:  # registration decides which instances' leftovers go
+                owner = torch.zeros_like(labels)
+                owner[drop] = carved_instance(model.means.detach()[drop], viewmats, Ks, int(cameras.width[0]),
+                                              int(cameras.height[0]), self.instance_masks_2d.to(self.device),
+                                              mask_tolerance=cfg.carve_mask_tolerance)
+                model.carve_owner = owner.cpu()
+                deferred = int((owner > 0).sum())
+                drop = torch.zeros_like(background)
             removed = int(drop.sum())
             if removed:
-                optimizers = getattr(model, "optimizers", None)
-                if optimizers is None:  # outside the Trainer (tests, tools): no optimizer state to keep in sync
-                    for name, param in list(model.gauss_params.items()):
-                        model.gauss_params[name] = torch.nn.Parameter(param.detach()[~drop])
-                else:
-                    remove_gaussians(model.gauss_params, optimizers, model.strategy_state, drop)
+                self._remove_gaussians(drop)
                 labels = labels[~drop]
         model.instance_labels = labels.cpu()
         model.instances = self.selection.summary()
@@ -622,12 +631,14 @@ class SplatReplacePipeline(VanillaPipeline):
             "instances": model.instances,
             "mask_coverage": {instance["id"]: share for instance, share in zip(model.instances, coverage)},
             "carved": removed,
+            "carve_deferred": deferred,
             "gaussians": model.num_points,
             "instance_gaussians": int((labels > 0).sum()),
         }
         CONSOLE.log(
             f"[bold]segmentation: {len(model.instances)} instances, {self.segmentation_report['instance_gaussians']} "
             f"instance Gaussians, {removed} background Gaussians carved"
+            + (f", {deferred} leftovers kept until registration decides which instances are replaced" if deferred else "")
         )
         return self.segmentation_report
 
@@ -693,7 +704,18 @@ class SplatReplacePipeline(VanillaPipeline):
                 transforms.pop(iid)
         params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
         labels = model.instance_labels.to(model.means.device)
-        model.own_gaussians = {i: {k: v[labels == i].clone() for k, v in params.items()} for i in transforms}
+        owner = model.carve_owner
+        owner = owner.to(labels.device) if owner is not None and owner.shape[0] == labels.shape[0] else torch.zeros_like(labels)
+        # an instance's own Gaussians, its carving leftovers included, as it looks when left as it was
+        model.own_gaussians = {i: {k: v[(labels == i) | (owner == i)].clone() for k, v in params.items()} for i in transforms}
+        model.carve_owner = None
+        drop = torch.isin(owner, torch.tensor(sorted(transforms), dtype=owner.dtype, device=owner.device))
+        if bool(drop.any()):  # the leftovers of replaced instances; those of instances left as they were stay
+            self._remove_gaussians(drop)
+            model.instance_labels = model.instance_labels[~drop.cpu()]
+            params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
+            CONSOLE.log(f"carving: {int(drop.sum())} leftover Gaussians of the replaced instances removed, "
+                        f"{int(((owner > 0) & ~drop).sum())} of the instances left as they were kept")
         new_params, table = build_templates(
             params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
             merge=model.config.template_union == "merge", merge_cells_per_radius=model.config.template_merge_cells,
@@ -715,6 +737,16 @@ class SplatReplacePipeline(VanillaPipeline):
             f"[bold]shared templates: {len(table.classes)} classes, {len(table.ids)} instances, "
             f"{model.num_points} stored Gaussians; fine-tuning for {self.config.finetune_iterations} steps"
         )
+
+    def _remove_gaussians(self, drop: torch.Tensor) -> None:
+        """Removes the Gaussians where ``drop`` ([N] bool), keeping the optimizers' state in step."""
+        model = self.model
+        optimizers = getattr(model, "optimizers", None)
+        if optimizers is None:  # outside the Trainer (tests, tools): no optimizer state to keep in sync
+            for name, param in list(model.gauss_params.items()):
+                model.gauss_params[name] = torch.nn.Parameter(param.detach()[~drop])
+        else:
+            remove_gaussians(model.gauss_params, optimizers, model.strategy_state, drop)
 
     def _not_replaced(self) -> List[int]:
         """Instances registration or its pose check left as they were."""

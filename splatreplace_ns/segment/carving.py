@@ -65,3 +65,49 @@ def carve_mask(
         remove &= (~inside) | in_mask | occluded
         touches_an_instance |= in_mask
     return remove & touches_an_instance
+
+
+def carved_instance(
+    means: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    label_masks: torch.Tensor,
+    near: float = 0.01,
+    mask_tolerance: int = 0,
+) -> torch.Tensor:
+    """Which instance each Gaussian is a leftover of: the instance whose mask its centre projects into in the
+    most views (ties: the lower id). A Gaussian carved for an instance that is then not replaced is part of
+    what that instance looks like, and stays.
+
+    Args:
+        means: [N, 3] centres; viewmats: [V, 4, 4] world→camera (OpenCV); Ks: [V, 3, 3] intrinsics.
+        label_masks: [V, H, W] integer instance ids per view (0 = background).
+        mask_tolerance: a centre within this many pixels of a mask counts as inside it (the highest id nearby).
+
+    Returns:
+        [N] long, the instance id (0: inside no instance's mask in any view).
+    """
+    labels = label_masks.long()
+    if mask_tolerance > 0:
+        size = 2 * int(mask_tolerance) + 1
+        labels = torch.nn.functional.max_pool2d(labels[:, None].float(), size, stride=1,
+                                                padding=int(mask_tolerance))[:, 0].round().long()
+    N, M = means.shape[0], int(labels.max()) if labels.numel() else 0
+    votes = torch.zeros(N, M + 1, dtype=torch.long, device=means.device)
+    homogeneous = torch.cat([means, torch.ones_like(means[:, :1])], dim=-1)  # [N, 4]
+    rows = torch.arange(N, device=means.device)
+    for view in range(viewmats.shape[0]):
+        cam = homogeneous @ viewmats[view].T
+        z = cam[:, 2]
+        pix = cam[:, :3] @ Ks[view].T
+        u = pix[:, 0] / z.clamp_min(near)
+        v = pix[:, 1] / z.clamp_min(near)
+        inside = (z > near) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        label = labels[view][v.clamp(0, height - 1).long(), u.clamp(0, width - 1).long()]
+        label = torch.where(inside, label, torch.zeros_like(label))
+        votes[rows, label] += 1
+    votes[:, 0] = 0  # background views do not vote
+    best = votes.argmax(dim=1)  # the first (lowest id) of equal counts
+    return torch.where(votes.max(dim=1).values > 0, best, torch.zeros_like(best))
