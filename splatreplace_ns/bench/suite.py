@@ -85,6 +85,10 @@ class BenchSuiteConfig:
     """For a variant (--registration or --overrides): resume ours from the checkpoint at the end of segmentation
     of the same scene's run with the defaults at the same budget, and reuse that run's baseline, so a variant of
     registration or of a later stage costs its registration and fine-tuning alone. Run the defaults first."""
+    reuse_baseline: bool = False
+    """For a variant of segmentation or of an earlier stage: train ours whole, alone, and take the baseline's
+    figures from the same scene's run with the defaults at the same budget (run the defaults first). Two variants
+    started side by side with OMP_NUM_THREADS=1 each run as ours and the baseline do in the suite."""
 
     def main(self) -> Dict:
         result = run_suite(self)
@@ -235,6 +239,8 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     if cfg.from_segmentation:
         pair = train_variant_from_segmentation(data, cfg)
         segmentation.update(pair["segmentation"])
+    elif cfg.reuse_baseline:
+        pair = train_variant_reusing_baseline(data, cfg, clock)
     else:
         pair = train_ours_and_baseline(data, run_folder(cfg, data.name), B, C, F, resumable=True,
                                        parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg))
@@ -268,6 +274,7 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         "baseline_beside_ours": pair["parallel"],
         "variant": variant_label(cfg) or "defaults",
         "resumed_from_segmentation": cfg.from_segmentation,
+        "baseline_reused": cfg.from_segmentation or cfg.reuse_baseline,
     }
     del pair, pipeline
     gc.collect()
@@ -291,14 +298,11 @@ def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     default = run_folder(cfg, data.name, default=True)
     checkpoints = default / "ours" / "splat-replace" / "run" / "nerfstudio_models"
-    saved = default / "result.json"
-    if not saved.exists() or not (checkpoints / f"step-{B + C - 1:09d}.ckpt").exists():
+    if not (checkpoints / f"step-{B + C - 1:09d}.ckpt").exists():
         raise FileNotFoundError(
             f"{default}: no run with the defaults that kept its checkpoint at the end of segmentation (step "
             f"{B + C - 1}); run `splatreplace bench suite` with the same split, scenes and budget first")
-    previous = json.loads(saved.read_text())["row"]
-    baseline = dict(previous["baseline"])
-    baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
+    previous, baseline = defaults_baseline(data, cfg)
     config = make_trainer_config(data, run_folder(cfg, data.name), B, C, F, experiment_name="ours", progress=True,
                                  resume_from=(checkpoints, B + C - 1))
     configure_ours(cfg)(config)
@@ -312,6 +316,45 @@ def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
             "times": {"ours": seconds, "baseline": previous["time_s"]["baseline"]},
             "stages": {"base": 0.0, "contrastive": 0.0, "segmentation": 0.0, "registration": registration_s,
                        "finetune": seconds - registration_s, "setup_and_eval": 0.0}}
+
+
+def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
+    """The row of the same scene's run with the defaults at the same budget, and its baseline's metrics (with the
+    per-instance PSNR), for a variant that reuses them.
+
+    Raises:
+        FileNotFoundError: when that run has no result.json.
+    """
+    default = run_folder(cfg, data.name, default=True)
+    saved = default / "result.json"
+    if not saved.exists():
+        raise FileNotFoundError(f"{default}: no run with the defaults; run `splatreplace bench suite` with the same "
+                                "split, scenes and budget first")
+    previous = json.loads(saved.read_text())["row"]
+    baseline = dict(previous["baseline"])
+    baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
+    return previous, baseline
+
+
+def train_variant_reusing_baseline(data: Path, cfg: BenchSuiteConfig, clock: "StageClock") -> Dict:
+    """Ours with the variant's settings trained whole (from step 0) in this process, against the baseline of the
+    defaults' run of this scene. → the fields of ``train_ours_and_baseline``'s result the suite reads."""
+    from splatreplace_ns.bench.template import _run, test_metrics
+    from splatreplace_ns.method.train import make_trainer_config
+
+    if not variant_label(cfg):
+        raise ValueError("--reuse-baseline needs a variant (--registration or --overrides)")
+    previous, baseline = defaults_baseline(data, cfg)
+    config = make_trainer_config(data, run_folder(cfg, data.name), cfg.base_iterations, cfg.contrastive_iterations,
+                                 cfg.finetune_iterations, experiment_name="ours", progress=True)
+    configure_ours(cfg)(config)
+    trainer, seconds = _run(config, after_step=clock)
+    pipeline = trainer.pipeline
+    times = {"ours": seconds, "baseline": previous["time_s"]["baseline"],
+             "segmentation": float(pipeline.segmentation_report.get("time_s", float("nan"))),
+             "registration": float(pipeline.registration_report.get("time_s", float("nan")))}
+    return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
+            "times": times}
 
 
 def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
@@ -352,7 +395,8 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
     configuration = {"res": res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
                      "contrastive_iterations": cfg.contrastive_iterations,
                      "finetune_iterations": cfg.finetune_iterations, "registration": cfg.registration,
-                     "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation}
+                     "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation,
+                     **({"reuse_baseline": True} if cfg.reuse_baseline else {})}
     rows = []
     for k, seed in enumerate(seeds):
         saved = run_folder(cfg, scene_name(seed, res, cfg.n_train, cfg.n_test)) / "result.json"
