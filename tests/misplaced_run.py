@@ -6,12 +6,12 @@ from __future__ import annotations
 from typing import Callable, Dict
 
 import numpy as np
-import pytest
 
 from splatreplace_ns.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
-from splatreplace_ns.method.train import make_trainer_config, run_training
+from splatreplace_ns.method.train import make_trainer_config
 from splatreplace_ns.sim import make_scene
+from scenes import train_patched
 
 
 def train_with_one_misplaced_copy(tmp_path_factory, finetune_iterations: int, configure: Callable) -> tuple:
@@ -39,10 +39,5 @@ def train_with_one_misplaced_copy(tmp_path_factory, finetune_iterations: int, co
     config.pipeline.datamanager.contrastive_uniform_samples = 1024
     config.pipeline.datamanager.contrastive_mask_samples = 512
     configure(config)
-    patch = pytest.MonkeyPatch()
-    patch.setattr(SplatReplaceDataManager, "register_instances", misregistered)
-    try:
-        trainer = run_training(config)
-    finally:
-        patch.undo()
+    trainer = train_patched(config, (SplatReplaceDataManager, "register_instances", misregistered))
     return trainer, misplaced["id"]

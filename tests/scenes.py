@@ -234,3 +234,22 @@ def click_in_viewer(trainer, controls, clicks) -> str:
         press_viewer_button(controls.arm_button)
         fire_viewer_click(controls.viewer_control.viser_server, *pixel_ray(camera, *click["xy"]))
     return controls.status.value
+
+
+def train_patched(config, *patches):
+    """Trains ``config`` with ``(owner, attribute name, value)`` patches in place for the run only.
+
+    Returns:
+        the trainer.
+    """
+    import pytest
+
+    from splatreplace_ns.method.train import run_training
+
+    patch = pytest.MonkeyPatch()
+    try:
+        for owner, name, value in patches:
+            patch.setattr(owner, name, value)
+        return run_training(config)
+    finally:
+        patch.undo()

@@ -5,15 +5,15 @@ the segmented scene densifies and its instance labels follow their Gaussians; be
 
 from __future__ import annotations
 
-import pytest
 import torch
 
 from splatreplace_ns.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.model import SplatReplaceModel
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
-from splatreplace_ns.method.train import make_trainer_config, run_training
+from splatreplace_ns.method.train import make_trainer_config
 from splatreplace_ns.sim import make_scene
+from scenes import train_patched
 
 FINETUNE = 120  # refinements at fine-tuning steps 24, 36 and 48, the check after fine-tuning at 60
 
@@ -48,14 +48,9 @@ def _train(tmp_path_factory, register) -> tuple:
         if self.num_points == len(before):
             at_start["quiet_changes"].append(float((self.opacities.detach() - before).abs().max()))
 
-    patch = pytest.MonkeyPatch()
-    patch.setattr(SplatReplaceModel, "_finetune_densify", watched_densify)
-    patch.setattr(SplatReplaceDataManager, "register_instances", register)
-    patch.setattr(SplatReplacePipeline, "build_shared_templates", counting_build)
-    try:
-        trainer = run_training(config)
-    finally:
-        patch.undo()
+    trainer = train_patched(config, (SplatReplaceModel, "_finetune_densify", watched_densify),
+                            (SplatReplaceDataManager, "register_instances", register),
+                            (SplatReplacePipeline, "build_shared_templates", counting_build))
     return trainer, at_start
 
 
