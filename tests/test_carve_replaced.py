@@ -9,9 +9,10 @@ import torch
 from splatreplace_ns.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
-from splatreplace_ns.method.train import make_trainer_config, run_training
+from splatreplace_ns.method.train import make_trainer_config
 from splatreplace_ns.segment.carving import carved_instance
 from splatreplace_ns.sim import make_scene
+from scenes import train_patched
 
 
 def test_carved_instance_takes_the_mask_seen_in_most_views():
@@ -68,13 +69,8 @@ def one_not_replaced(tmp_path_factory):
     config.pipeline.datamanager.contrastive_mask_samples = 512
     config.pipeline.segmentation.carve_only_replaced = True
     config.pipeline.revert.enabled = False
-    patch = pytest.MonkeyPatch()
-    patch.setattr(SplatReplaceDataManager, "register_instances", registered_but_one)
-    patch.setattr(SplatReplacePipeline, "build_shared_templates", recorded_build)
-    try:
-        trainer = run_training(config)
-    finally:
-        patch.undo()
+    trainer = train_patched(config, (SplatReplaceDataManager, "register_instances", registered_but_one),
+                            (SplatReplacePipeline, "build_shared_templates", recorded_build))
     return trainer, state
 
 
@@ -99,8 +95,9 @@ def test_only_the_replaced_instances_leftovers_are_removed(one_not_replaced):
     assert int(after["background"].sum()) == int((~gone).sum())
     kept = before["means"][~gone]
     assert torch.equal(after["means"][after["background"]], kept)  # in order, untouched
-    # each replaced instance's own Gaussians (put back if the check after fine-tuning refuses it) hold its leftovers
+    # each replaced instance's own Gaussians (what the check after fine-tuning compares its copy with) are those
+    # segmentation selected, without the leftovers
     for i in replaced:
-        assert after["own"][i] == int(((labels == i) | (owner == i)).sum())
+        assert after["own"][i] == int((labels == i).sum())
     assert after["owner"] is None
     assert trainer.pipeline.model.carve_owner is None

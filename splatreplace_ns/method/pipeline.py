@@ -64,8 +64,8 @@ class SegmentationConfig:
     """Remove leftover background Gaussians by space carving."""
     carve_only_replaced: bool = False
     """Carve after registration, and only the leftovers of instances that are replaced: an instance left as it
-    was keeps the Gaussians its selection missed. False: the paper's, every instance's leftovers at the end of
-    segmentation."""
+    was (registration refused it) keeps the Gaussians its selection missed. False: the paper's, every instance's
+    leftovers at the end of segmentation."""
     depth_tolerance: float = 0.02
     """Relative depth margin for the carving visibility test."""
     carve_mask_tolerance: int = 1
@@ -670,7 +670,10 @@ class SplatReplacePipeline(VanillaPipeline):
         classes = {int(i["id"]): i["class"] for i in model.instances}
         CONSOLE.log(f"[bold]registration: {len(instances)} instances in {len(set(classes.values()))} classes")
         labels = model.instance_labels.to(model.means.device)
-        config, up_message = with_floor_up_axis(self.config.registration, model.means.detach()[labels == 0],
+        background = labels == 0
+        if model.carve_owner is not None and model.carve_owner.shape[0] == labels.shape[0]:
+            background &= model.carve_owner.to(labels.device) == 0  # the floor as it is with carving done
+        config, up_message = with_floor_up_axis(self.config.registration, model.means.detach()[background],
                                                 model.means.detach()[labels > 0])
         if up_message:
             CONSOLE.log(up_message)
@@ -706,8 +709,9 @@ class SplatReplacePipeline(VanillaPipeline):
         labels = model.instance_labels.to(model.means.device)
         owner = model.carve_owner
         owner = owner.to(labels.device) if owner is not None and owner.shape[0] == labels.shape[0] else torch.zeros_like(labels)
-        # an instance's own Gaussians, its carving leftovers included, as it looks when left as it was
-        model.own_gaussians = {i: {k: v[(labels == i) | (owner == i)].clone() for k, v in params.items()} for i in transforms}
+        # without the leftovers: the check after fine-tuning then compares the copy with what segmentation selected
+        # (with them it put back copies that gained in new views, 3 of 4 and 4 of 5 on dev seeds 3 and 4)
+        model.own_gaussians = {i: {k: v[labels == i].clone() for k, v in params.items()} for i in transforms}
         model.carve_owner = None
         drop = torch.isin(owner, torch.tensor(sorted(transforms), dtype=owner.dtype, device=owner.device))
         if bool(drop.any()):  # the leftovers of replaced instances; those of instances left as they were stay
