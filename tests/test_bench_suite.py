@@ -140,7 +140,7 @@ def test_one_tiny_scene_end_to_end(tmp_path, capsys):
     # a variant of segmentation trained whole against the defaults' baseline (not trained again); its own
     # segmentation is scored
     carve = BenchSuiteConfig(**{**cfg.__dict__, "resume": False, "json": tmp_path / "carve.json",
-                                "overrides": ("pipeline.segmentation.carve_only_replaced=True",), "reuse_baseline": True})
+                                "overrides": ("pipeline.segmentation.carve_only_replaced=False",), "reuse_baseline": True})
     carve.main()
     (carve_row,) = json.loads((tmp_path / "carve.json").read_text())["scenes"]
     assert carve_row["baseline_reused"] and not carve_row["resumed_from_segmentation"]
@@ -148,9 +148,9 @@ def test_one_tiny_scene_end_to_end(tmp_path, capsys):
     assert carve_row["time_s"]["base"] > 0 and carve_row["time_s"]["segmentation"] > 0  # stages of this run
     assert (carve_row["segmentation_miou"], carve_row["segmentation_unavailable"]) == (
         row["segmentation_miou"], row["segmentation_unavailable"])  # scored again, on the same segmentation
-    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_reg-ours+pipeline.segmentation.carve_only_replaced=True"
+    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_reg-ours+pipeline.segmentation.carve_only_replaced=False"
     assert (folder / "result.json").exists() and not (folder / "baseline").exists()
-    assert "carve_only_replaced: true" in (folder / "ours" / "splat-replace" / "run" / "config.yml").read_text()
+    assert "carve_only_replaced: false" in (folder / "ours" / "splat-replace" / "run" / "config.yml").read_text()
 
 
 def test_a_variant_from_segmentation_needs_the_defaults_run(tmp_path):

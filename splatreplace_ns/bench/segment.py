@@ -168,6 +168,7 @@ def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, car
         config.pipeline.model.opacity_l1_lambda = 0.0
         config.pipeline.model.scale_l1_lambda = 0.0
     config.pipeline.segmentation.carve = carve
+    config.pipeline.segmentation.carve_only_replaced = False  # carving scored as when every instance is replaced
     trainer = setup_trainer(config)
     pipeline = trainer.pipeline
     record: Dict = {"time_s": {}}

@@ -62,10 +62,10 @@ class SegmentationConfig:
     otherwise at the end of the contrastive stage). never: a capture without masks then needs clicks.json."""
     carve: bool = True
     """Remove leftover background Gaussians by space carving."""
-    carve_only_replaced: bool = False
+    carve_only_replaced: bool = True
     """Carve after registration, and only the leftovers of instances that are replaced: an instance left as it
     was (registration refused it) keeps the Gaussians its selection missed. False: the paper's, every instance's
-    leftovers at the end of segmentation."""
+    leftovers at the end of segmentation (docs/deviations.md)."""
     depth_tolerance: float = 0.02
     """Relative depth margin for the carving visibility test."""
     carve_mask_tolerance: int = 1
