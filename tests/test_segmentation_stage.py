@@ -127,7 +127,11 @@ def test_viewer_click_flow_selects_the_clicked_instance(segmented):
         # it is the instance that the finished segmentation gave to this click (the second one): nearly all
         # selected Gaussians belong to it. How much of it the ray's query covers depends on the features of this
         # 300-iteration contrastive stage (0.19 in one CI run, above 0.5 in earlier ones), so it is only asked to be real.
+        # with carving waiting for registration, the leftovers it found for this instance are still there: parts of
+        # it that the finished segmentation missed
         instance = pipeline.model.instance_labels == 2
+        if pipeline.model.carve_owner is not None:
+            instance |= pipeline.model.carve_owner == 2
         precision = float((chosen & instance).sum()) / float(chosen.sum())
         recall = float((chosen & instance).sum()) / float(instance.sum())
         assert precision > 0.95 and recall > 0.1, (precision, recall)

@@ -622,7 +622,7 @@ class SplatReplacePipeline(VanillaPipeline):
                 drop = torch.zeros_like(background)
             removed = int(drop.sum())
             if removed:
-                self._remove_gaussians(drop)
+                self.drop_gaussians(drop)
                 labels = labels[~drop]
         model.instance_labels = labels.cpu()
         model.instances = self.selection.summary()
@@ -670,9 +670,7 @@ class SplatReplacePipeline(VanillaPipeline):
         classes = {int(i["id"]): i["class"] for i in model.instances}
         CONSOLE.log(f"[bold]registration: {len(instances)} instances in {len(set(classes.values()))} classes")
         labels = model.instance_labels.to(model.means.device)
-        background = labels == 0
-        if model.carve_owner is not None and model.carve_owner.shape[0] == labels.shape[0]:
-            background &= model.carve_owner.to(labels.device) == 0  # the floor as it is with carving done
+        background = (labels == 0) & self._not_leftover()  # the floor as it is with carving done
         config, up_message = with_floor_up_axis(self.config.registration, model.means.detach()[background],
                                                 model.means.detach()[labels > 0])
         if up_message:
@@ -713,9 +711,9 @@ class SplatReplacePipeline(VanillaPipeline):
         # (with them it put back copies that gained in new views, 3 of 4 and 4 of 5 on dev seeds 3 and 4)
         model.own_gaussians = {i: {k: v[labels == i].clone() for k, v in params.items()} for i in transforms}
         model.carve_owner = None
-        drop = torch.isin(owner, torch.tensor(sorted(transforms), dtype=owner.dtype, device=owner.device))
+        drop = torch.isin(owner, torch.tensor(sorted(transforms), dtype=owner.dtype, device=owner.device)) & (labels == 0)
         if bool(drop.any()):  # the leftovers of replaced instances; those of instances left as they were stay
-            self._remove_gaussians(drop)
+            self.drop_gaussians(drop)
             model.instance_labels = model.instance_labels[~drop.cpu()]
             params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
             CONSOLE.log(f"carving: {int(drop.sum())} leftover Gaussians of the replaced instances removed, "
@@ -742,7 +740,16 @@ class SplatReplacePipeline(VanillaPipeline):
             f"{model.num_points} stored Gaussians; fine-tuning for {self.config.finetune_iterations} steps"
         )
 
-    def _remove_gaussians(self, drop: torch.Tensor) -> None:
+    def _not_leftover(self) -> torch.Tensor:
+        """[N] bool on the model's device: False for the leftovers carving waits to remove (``carve_only_replaced``)."""
+        model = self.model
+        owner = model.carve_owner
+        keep = torch.ones(model.num_points, dtype=torch.bool, device=model.means.device)
+        if owner is not None and owner.shape[0] == model.num_points:
+            keep &= owner.to(keep.device) == 0
+        return keep
+
+    def drop_gaussians(self, drop: torch.Tensor) -> None:
         """Removes the Gaussians where ``drop`` ([N] bool), keeping the optimizers' state in step."""
         model = self.model
         optimizers = getattr(model, "optimizers", None)
@@ -765,10 +772,11 @@ class SplatReplacePipeline(VanillaPipeline):
         model = self.model
         was_training = model.training
         model.eval()
+        keep = self._not_leftover()  # the scene as carving leaves it, whichever instances are replaced
         scene = {
-            "means": model.means.detach(), "quats": model.quats.detach(), "log_scales": model.scales.detach(),
-            "logit_opacities": model.opacities.detach(),
-            "sh": torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1).detach(),
+            "means": model.means.detach()[keep], "quats": model.quats.detach()[keep],
+            "log_scales": model.scales.detach()[keep], "logit_opacities": model.opacities.detach()[keep],
+            "sh": torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1).detach()[keep],
         }
         cameras = self.datamanager.train_dataset.cameras
         images = [data["image"] for data in self.datamanager.cached_train]
@@ -777,8 +785,8 @@ class SplatReplacePipeline(VanillaPipeline):
             return model.render_gaussian_set(cameras[view : view + 1], gaussians, extra)
 
         up = self.registration_report.get("up_axis", self.config.registration.up_axis)
-        scores = gate_registrations(scene, model.instance_labels, classes, transforms, templates, images, render, up,
-                                    self.config.gate)
+        scores = gate_registrations(scene, model.instance_labels[keep.cpu()], classes, transforms, templates, images,
+                                    render, up, self.config.gate)
         model.train(was_training)
         refused = []
         for iid, score in scores.items():
