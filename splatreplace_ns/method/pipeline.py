@@ -76,8 +76,8 @@ class SegmentationConfig:
     """Pixels with less accumulated opacity stay background in the rendered masks."""
     min_mask_coverage: float = 0.2
     """Warn about an instance whose selected Gaussians cover less of its rendered masks than this: carving then
-    removes the rest of it (tiny scene after 300 + 200 iterations: 2-7 %, and carving takes the training views'
-    PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-88 %)."""
+    removes the rest of it when it is replaced (tiny scene after 300 + 200 iterations: 2-7 %, and carving takes
+    the training views' PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-88 %)."""
     lift: Literal["contrastive", "voting"] = "contrastive"
     """How the 2D instance masks become per-Gaussian instances. contrastive: train per-Gaussian features for
     --pipeline.contrastive-iterations steps (paper §4.1); voting: no contrastive stage, each Gaussian takes the

@@ -86,8 +86,9 @@ def undercovered_instances(instances: List[Dict], coverage: List[float], min_cov
     """
     return [
         f"instance {instance['id']} ({instance['class']}, {instance['num_gaussians']} Gaussians) covers {share:.0%} of "
-        "its rendered masks, and carving removes the rest of it as leftovers: the contrastive features are likely "
-        "undertrained (more --pipeline.contrastive-iterations, or a larger --pipeline.segmentation.tau)"
+        "its rendered masks, and if it is replaced carving removes the rest of it as leftovers: the contrastive "
+        "features are likely undertrained (more --pipeline.contrastive-iterations, or a larger "
+        "--pipeline.segmentation.tau)"
         for instance, share in zip(instances, coverage)
         if share < min_coverage
     ]
