@@ -91,12 +91,10 @@ def use_ground_truth(pipeline, instances_too: bool, depth_tolerance: float = 0.0
     if not poses:
         raise ValueError("the dataset has no ground-truth instance poses (transforms.json 'instances')")
     if instances_too:
-        owner = model.carve_owner
-        if owner is not None and owner.shape[0] == model.num_points and bool((owner > 0).any()):
-            # the segmentation's leftovers carved first, as the paper does at the end of segmentation
-            drop = owner > 0
-            pipeline.drop_gaussians(drop.to(model.means.device))
-            model.instance_labels = model.instance_labels[~drop]
+        drop = pipeline.leftover_owner() > 0
+        if bool(drop.any()):  # the segmentation's leftovers carved first, as the paper does at the end of segmentation
+            pipeline.drop_gaussians(drop)
+            model.instance_labels = model.instance_labels[~drop.cpu()]
         labels = label_gaussians_from_ground_truth(pipeline, depth_tolerance).cpu()
         meta = datamanager.train_dataparser_outputs.metadata["instances"]
         present = {int(i) for i in labels.unique().tolist() if int(i) > 0}

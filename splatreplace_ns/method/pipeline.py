@@ -574,7 +574,8 @@ class SplatReplacePipeline(VanillaPipeline):
             model.instances = []
             model.stage = "segmented"
             model.carve_owner = None
-            self.segmentation_report = {"instances": [], "mask_coverage": {}, "carved": 0, "gaussians": model.num_points,
+            self.segmentation_report = {"instances": [], "mask_coverage": {}, "carved": 0, "carve_deferred": 0,
+                                        "gaussians": model.num_points,
                                         "instance_gaussians": 0}
             CONSOLE.log("[bold yellow]segmentation: no instance was selected, so nothing is replaced: the scene is "
                         "left as it was and trained on as the base model")
@@ -670,7 +671,7 @@ class SplatReplacePipeline(VanillaPipeline):
         classes = {int(i["id"]): i["class"] for i in model.instances}
         CONSOLE.log(f"[bold]registration: {len(instances)} instances in {len(set(classes.values()))} classes")
         labels = model.instance_labels.to(model.means.device)
-        background = (labels == 0) & self._not_leftover()  # the floor as it is with carving done
+        background = (labels == 0) & (self.leftover_owner() == 0)  # the floor as it is with carving done
         config, up_message = with_floor_up_axis(self.config.registration, model.means.detach()[background],
                                                 model.means.detach()[labels > 0])
         if up_message:
@@ -705,8 +706,7 @@ class SplatReplacePipeline(VanillaPipeline):
                 transforms.pop(iid)
         params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
         labels = model.instance_labels.to(model.means.device)
-        owner = model.carve_owner
-        owner = owner.to(labels.device) if owner is not None and owner.shape[0] == labels.shape[0] else torch.zeros_like(labels)
+        owner = self.leftover_owner()
         # without the leftovers: the check after fine-tuning then compares the copy with what segmentation selected
         # (with them it put back copies that gained in new views, 3 of 4 and 4 of 5 on dev seeds 3 and 4)
         model.own_gaussians = {i: {k: v[labels == i].clone() for k, v in params.items()} for i in transforms}
@@ -740,14 +740,14 @@ class SplatReplacePipeline(VanillaPipeline):
             f"{model.num_points} stored Gaussians; fine-tuning for {self.config.finetune_iterations} steps"
         )
 
-    def _not_leftover(self) -> torch.Tensor:
-        """[N] bool on the model's device: False for the leftovers carving waits to remove (``carve_only_replaced``)."""
+    def leftover_owner(self) -> torch.Tensor:
+        """[N] long on the model's device: the instance each leftover that carving waits to remove belongs to
+        (``carve_only_replaced``), 0 for every other Gaussian (all of them when nothing waits)."""
         model = self.model
         owner = model.carve_owner
-        keep = torch.ones(model.num_points, dtype=torch.bool, device=model.means.device)
-        if owner is not None and owner.shape[0] == model.num_points:
-            keep &= owner.to(keep.device) == 0
-        return keep
+        if owner is None or owner.shape[0] != model.num_points:
+            return torch.zeros(model.num_points, dtype=torch.long, device=model.means.device)
+        return owner.to(model.means.device)
 
     def drop_gaussians(self, drop: torch.Tensor) -> None:
         """Removes the Gaussians where ``drop`` ([N] bool), keeping the optimizers' state in step."""
@@ -772,7 +772,7 @@ class SplatReplacePipeline(VanillaPipeline):
         model = self.model
         was_training = model.training
         model.eval()
-        keep = self._not_leftover()  # the scene as carving leaves it, whichever instances are replaced
+        keep = self.leftover_owner() == 0  # the scene as carving leaves it, whichever instances are replaced
         scene = {
             "means": model.means.detach()[keep], "quats": model.quats.detach()[keep],
             "log_scales": model.scales.detach()[keep], "logit_opacities": model.opacities.detach()[keep],
