@@ -152,6 +152,19 @@ def test_one_tiny_scene_end_to_end(tmp_path, capsys):
     assert (folder / "result.json").exists() and not (folder / "baseline").exists()
     assert "carve_only_replaced: false" in (folder / "ours" / "splat-replace" / "run" / "config.yml").read_text()
 
+    # the defaults trained again with another seed (the suite's run-to-run spread): both runs are trained anew,
+    # in folders of their own, and come out different
+    again = BenchSuiteConfig(**{**cfg.__dict__, "resume": False, "json": tmp_path / "seed1.json", "training_seed": 1})
+    again.main()
+    seeded = json.loads((tmp_path / "seed1.json").read_text())
+    (seed_row,) = seeded["scenes"]
+    assert seeded["parameters"]["training_seed"] == 1
+    assert seed_row["baseline"] != row["baseline"] and seed_row["ours"] != row["ours"]
+    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_seed1"
+    for who in ("ours", "baseline"):
+        saved = (folder / who / "splat-replace" / "run" / "config.yml").read_text()
+        assert "  seed: 1\n" in saved and "train_cameras_sampling_seed: 1\n" in saved
+
 
 def test_a_variant_from_segmentation_needs_the_defaults_run(tmp_path):
     cfg = BenchSuiteConfig(split="dev", seeds=(1,), res="48x36", n_train=10, n_test=2, base_iterations=60,
@@ -161,6 +174,9 @@ def test_a_variant_from_segmentation_needs_the_defaults_run(tmp_path):
         suite.run_suite(cfg)
     cfg.from_segmentation, cfg.reuse_baseline = False, True
     with pytest.raises(FileNotFoundError, match="run `splatreplace bench suite` with the same split"):
+        suite.run_suite(cfg)
+    cfg.training_seed = 1
+    with pytest.raises(ValueError, match="does not combine with --reuse-baseline"):
         suite.run_suite(cfg)
     with pytest.raises(ValueError, match="unknown registration variant 'papers'"):
         suite.configure_ours(BenchSuiteConfig(registration="papers"))
@@ -177,3 +193,5 @@ def test_variant_labels_name_the_run_folders():
     assert suite.variant_label(gate) == "reg-ours+pipeline.gate.enabled=True"
     assert suite.run_folder(gate, "s").name.endswith("_reg-ours+pipeline.gate.enabled=True")
     assert suite.run_folder(gate, "s", default=True) == suite.run_folder(default, "s")
+    seeded = BenchSuiteConfig(out_dir=Path("runs"), training_seed=3)
+    assert suite.run_folder(seeded, "s").name == "s_1500-500-1000_seed3"

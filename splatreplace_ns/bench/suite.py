@@ -89,6 +89,10 @@ class BenchSuiteConfig:
     """For a variant of segmentation or of an earlier stage: train ours whole, alone, and take the baseline's
     figures from the same scene's run with the defaults at the same budget (run the defaults first). Two variants
     started side by side with OMP_NUM_THREADS=1 each run as ours and the baseline do in the suite."""
+    training_seed: Optional[int] = None
+    """Training seed of ours and the baseline: nerfstudio's machine.seed and the order the training views are drawn
+    in (default: nerfstudio's 42). The same scenes trained again with another seed give the suite's run-to-run
+    spread; the runs go to folders of their own."""
 
     def main(self) -> Dict:
         result = run_suite(self)
@@ -132,7 +136,8 @@ def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> 
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     label = "" if default else variant_label(cfg)
     safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
-    return cfg.out_dir / (f"{data_name}_{B}-{C}-{F}" + (f"_{safe}" if safe else ""))
+    seed = "" if cfg.training_seed is None else f"_seed{cfg.training_seed}"
+    return cfg.out_dir / (f"{data_name}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
 
 
 def configure_ours(cfg: BenchSuiteConfig):
@@ -243,7 +248,8 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         pair = train_variant_reusing_baseline(data, cfg, clock)
     else:
         pair = train_ours_and_baseline(data, run_folder(cfg, data.name), B, C, F, resumable=True,
-                                       parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg))
+                                       parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg),
+                                       seed=cfg.training_seed)
     pipeline = pair["ours_trainer"].pipeline
     registration, _ = registration_report(pipeline)
     times = pair["times"]
@@ -396,7 +402,11 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
                      "contrastive_iterations": cfg.contrastive_iterations,
                      "finetune_iterations": cfg.finetune_iterations, "registration": cfg.registration,
                      "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation,
-                     **({"reuse_baseline": True} if cfg.reuse_baseline else {})}
+                     **({"reuse_baseline": True} if cfg.reuse_baseline else {}),
+                     **({"training_seed": cfg.training_seed} if cfg.training_seed is not None else {})}
+    if cfg.training_seed is not None and (cfg.reuse_baseline or cfg.from_segmentation):
+        raise ValueError("--training-seed trains ours and the baseline again; it does not combine with "
+                         "--reuse-baseline or --from-segmentation (they reuse the runs of the default seed)")
     rows = []
     for k, seed in enumerate(seeds):
         saved = run_folder(cfg, scene_name(seed, res, cfg.n_train, cfg.n_test)) / "result.json"

@@ -125,7 +125,15 @@ def _run(config, before_train=None, after_step=None) -> Tuple[object, float]:
     return trainer, time.perf_counter() - start
 
 
-def _baseline_worker(data: str, out: str, iterations: int, threads: int, log_path: str, queue) -> None:
+def reseed(config, seed: Optional[int]) -> None:
+    """Sets a run's training seed: torch's, numpy's and random's (``machine.seed``) and the order the training
+    views are drawn in (the datamanager's own seed). None keeps nerfstudio's (42 for both)."""
+    if seed is not None:
+        config.machine.seed = seed
+        config.pipeline.datamanager.train_cameras_sampling_seed = seed
+
+
+def _baseline_worker(data: str, out: str, iterations: int, threads: int, log_path: str, queue, seed=None) -> None:
     """Trains and scores the 3DGS* baseline in a process of its own (its console output goes to ``log_path``)."""
     from splatreplace_ns.method.train import make_trainer_config
 
@@ -134,6 +142,7 @@ def _baseline_worker(data: str, out: str, iterations: int, threads: int, log_pat
         os.dup2(log.fileno(), 2)
     torch.set_num_threads(threads)
     config = make_trainer_config(Path(data), Path(out), iterations, experiment_name="baseline", progress=True)
+    reseed(config, seed)
     trainer, seconds = _run(config)
     queue.put({"metrics": test_metrics(trainer.pipeline), "time_s": seconds, "gaussians": trainer.pipeline.model.num_points,
                "config": str(config.get_base_dir() / "config.yml")})
@@ -153,7 +162,7 @@ def _wait_for(process, queue) -> Dict:
 
 def train_ours_and_baseline(
     data: Path, out: Path, B: int, C: int, F: int, resumable: bool = False, parallel: bool = False, after_step=None,
-    configure=None,
+    configure=None, seed: Optional[int] = None,
 ) -> Dict:
     """Trains the whole method and the 3DGS* baseline with the same total iterations and scores both.
 
@@ -167,6 +176,7 @@ def train_ours_and_baseline(
             ``out/baseline.log``.
         after_step: ``after_step(trainer, step)`` after every step of ours (see ``method.train.run_training``).
         configure: ``configure(trainer_config)`` changes ours' settings before it trains (not the baseline's).
+        seed: the training seed of both runs (:func:`reseed`; default: nerfstudio's 42).
     Returns:
         {"ours", "baseline": metrics, "ours_trainer", "baseline_pipeline", "ours_config", "times", "sizes",
          "registration"}.
@@ -187,12 +197,13 @@ def train_ours_and_baseline(
         context = multiprocessing.get_context("spawn")
         queue = context.Queue()
         worker = context.Process(target=_baseline_worker, daemon=True,
-                                 args=(str(data), str(out), B + C + F, threads, str(out / "baseline.log"), queue))
+                                 args=(str(data), str(out), B + C + F, threads, str(out / "baseline.log"), queue, seed))
         worker.start()
     try:
         ours_cfg = make_trainer_config(data, out, B, C, F, experiment_name="ours",
                                        steps_per_save=B + C - 1 if resumable else None, progress=True)
         ours_cfg.save_only_latest_checkpoint = not resumable
+        reseed(ours_cfg, seed)
         if configure is not None:
             configure(ours_cfg)
         ours_trainer, times["ours"] = _run(ours_cfg, after_step=after_step)
@@ -230,6 +241,7 @@ def train_ours_and_baseline(
         baseline_pipeline = load_pipeline(Path(done["config"]))
     else:
         baseline_cfg = make_trainer_config(data, out, B + C + F, experiment_name="baseline", progress=True)
+        reseed(baseline_cfg, seed)
         baseline_trainer, times["baseline"] = _run(baseline_cfg)
         baseline = test_metrics(baseline_trainer.pipeline)
         baseline_pipeline = baseline_trainer.pipeline

@@ -28,7 +28,7 @@ import platform
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -88,8 +88,29 @@ class BenchTradeoffConfig:
     """Training outputs."""
     threads: int = 2
     """torch CPU threads."""
+    split: Optional[Literal["dev", "report"]] = None
+    """Sweep the whole run's budget on these scenes of the scene suite instead of one preset's knobs: each point
+    is ``bench suite`` at --budget-scales × the demo's budget (ours against 3DGS* with the same total
+    iterations), reusing the suite's runs of the same configuration; --preset, --sweeps and the per-knob values
+    are then not used, the scenes have the suite's 48 + 8 views at --res."""
+    seeds: Tuple[int, ...] = (0, 1, 2, 3, 4, 5)
+    """Scenes of --split (its seeds) for the budget sweep."""
+    budget_scales: Tuple[float, ...] = (0.5, 1.0)
+    """Budgets of the sweep, as multiples of the demo's 1500 + 500 + 1000 iterations."""
+    training_seed: Optional[int] = None
+    """Training seed of the sweep's runs (``bench suite --training-seed``; default: nerfstudio's 42)."""
 
     def main(self) -> Dict:
+        if self.split is not None:
+            from splatreplace_ns.bench.budget_sweep import print_budget_table, run_budget_sweep, write_budget_plot
+
+            result = run_budget_sweep(self)
+            print_budget_table(result)
+            write_result_json(result, self.json)
+            plot = self.plot or (self.json.with_suffix(".png") if self.json else Path(f"benchmarks/results/tradeoff_{self.split}.png"))
+            write_budget_plot(result, plot)
+            print(f"wrote {plot}")
+            return result
         result = run_tradeoff_bench(self)
         print_table(result)
         write_result_json(result, self.json)
