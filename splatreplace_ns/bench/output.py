@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Callable, Dict, Optional
 
 
 def write_result_json(result: Dict[str, Any], path: Optional[Path]) -> None:
@@ -17,6 +17,18 @@ def write_result_json(result: Dict[str, Any], path: Optional[Path]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(json_safe(result), indent=2, allow_nan=False) + "\n")
     print(f"wrote {path}")
+
+
+def publish(result: Dict[str, Any], table: Callable[[Dict], None], json_path: Optional[Path],
+            plot_path: Optional[Path], default_plot: Path, draw: Callable[[Dict, Path], None]) -> Dict[str, Any]:
+    """Prints a benchmark's table, writes its JSON and draws its plot (beside the JSON unless ``plot_path`` is
+    given, else at ``default_plot``). → ``result``."""
+    table(result)
+    write_result_json(result, json_path)
+    plot = plot_path or (Path(json_path).with_suffix(".png") if json_path else default_plot)
+    draw(result, plot)
+    print(f"wrote {plot}")
+    return result
 
 
 def fmt_number(value: Optional[float], digits: int = 2, signed: bool = False) -> str:

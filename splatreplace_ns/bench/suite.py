@@ -28,7 +28,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 
 import torch
 
-from splatreplace_ns.bench.output import fmt_number as _fmt, write_result_json
+from splatreplace_ns.bench.output import fmt_number as _fmt, publish, write_result_json
 from splatreplace_ns.demo import DemoCommand
 
 DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
@@ -95,13 +95,8 @@ class BenchSuiteConfig:
     spread; the runs go to folders of their own."""
 
     def main(self) -> Dict:
-        result = run_suite(self)
-        print_suite(result)
-        write_result_json(result, self.json)
-        plot = self.plot or (self.json.with_suffix(".png") if self.json else Path(f"benchmarks/results/suite_{self.split}.png"))
-        write_gain_plot(result, plot)
-        print(f"wrote {plot}")
-        return result
+        return publish(run_suite(self), print_suite, self.json, self.plot,
+                       Path(f"benchmarks/results/suite_{self.split}.png"), write_gain_plot)
 
 
 def split_seeds(cfg: BenchSuiteConfig) -> List[int]:

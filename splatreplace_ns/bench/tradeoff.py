@@ -33,7 +33,7 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.bench.output import publish
 from splatreplace_ns.bench.scenes import cached_scene
 
 SWEEPS = ("baseline", "base", "contrastive", "finetune", "virtual_views", "matcher", "res")
@@ -104,20 +104,10 @@ class BenchTradeoffConfig:
         if self.split is not None:
             from splatreplace_ns.bench.budget_sweep import print_budget_table, run_budget_sweep, write_budget_plot
 
-            result = run_budget_sweep(self)
-            print_budget_table(result)
-            write_result_json(result, self.json)
-            plot = self.plot or (self.json.with_suffix(".png") if self.json else Path(f"benchmarks/results/tradeoff_{self.split}.png"))
-            write_budget_plot(result, plot)
-            print(f"wrote {plot}")
-            return result
-        result = run_tradeoff_bench(self)
-        print_table(result)
-        write_result_json(result, self.json)
-        plot = self.plot or (self.json.with_suffix(".png") if self.json else Path(f"benchmarks/results/tradeoff_{self.preset}.png"))
-        write_pareto_plot(result, plot)
-        print(f"wrote {plot}")
-        return result
+            return publish(run_budget_sweep(self), print_budget_table, self.json, self.plot,
+                           Path(f"benchmarks/results/tradeoff_{self.split}.png"), write_budget_plot)
+        return publish(run_tradeoff_bench(self), print_table, self.json, self.plot,
+                       Path(f"benchmarks/results/tradeoff_{self.preset}.png"), write_pareto_plot)
 
 
 # ----------------------------------------------------------------------------- pure helpers
