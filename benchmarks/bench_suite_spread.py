@@ -95,7 +95,7 @@ def main(cfg: BenchSuiteSpreadConfig) -> Dict:
         raise ValueError(f"the two sides differ in more than the training seed: {comparable(result_a)} against "
                          f"{comparable(result_b)}")
     diff = compare(a, b)
-    result = {"benchmark": "suite_spread", "runs": [[str(p) for p in cfg.runs_a], [str(p) for p in cfg.runs_b]],
+    result = {"benchmark": "suite_spread", "runs": [[Path(p).name for p in cfg.runs_a], [Path(p).name for p in cfg.runs_b]],
               "training_seeds": [result_a["parameters"].get("training_seed", 42), result_b["parameters"].get("training_seed", 42)],
               "split": result_a["split"], "parameters": result_a["parameters"], "summary": summary(diff), **diff}
     print(f"{'seed':>5} {'masked gain a → b':>20} {'full gain a → b':>18} {'Δ ours masked':>14} {'Δ 3DGS* masked':>15} {'mIoU a / b':>12}")
