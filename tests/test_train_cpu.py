@@ -71,17 +71,3 @@ def test_ns_eval_reports_psnr_and_ssim(trained, tmp_path):
     results = json.loads(out.read_text())["results"]
     assert results["psnr"] > 20 and 0 < results["ssim"] <= 1
     assert "lpips" not in results or results["lpips"] >= 0
-
-
-def test_learning_rates_decay_over_the_base_stage_the_command_line_asks_for(tmp_path):
-    """ns-train builds the method's config for 30000 base iterations, then applies --pipeline.base-iterations:
-    the means' and cameras' learning rates must still reach their final values where that base stage ends."""
-    from splatreplace_ns.method.config import SplatReplaceTrainer, splat_replace_trainer_config
-
-    config = splat_replace_trainer_config()
-    config.output_dir = tmp_path
-    config.pipeline.base_iterations = 300
-    SplatReplaceTrainer(config)
-    assert config.optimizers["means"]["scheduler"].max_steps == 300
-    assert config.optimizers["camera_opt"]["scheduler"].max_steps == 300
-    assert config.max_num_iterations == 300 + 5000 + 7000

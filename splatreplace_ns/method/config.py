@@ -34,10 +34,6 @@ class SplatReplaceTrainer(Trainer):
     def __init__(self, config: SplatReplaceTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         if config.max_num_iterations <= 0:
             config.max_num_iterations = config.pipeline.total_iterations
-        for name in ("means", "camera_opt"):  # decay over the base stage, whatever --pipeline.base-iterations says
-            scheduler = (config.optimizers.get(name) or {}).get("scheduler")
-            if scheduler is not None:
-                scheduler.max_steps = config.pipeline.base_iterations
         if not torch.cuda.is_available() or config.machine.device_type == "cpu":
             keep_freed_buffers()  # CPU steps reuse their large gradient buffers instead of re-faulting them
         super().__init__(config, local_rank, world_size)
