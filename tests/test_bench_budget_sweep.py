@@ -8,6 +8,7 @@ import cv2
 import pytest
 
 from splatreplace_ns.bench import budget_sweep, suite
+from splatreplace_ns.bench.output import spread
 from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig
 
 
@@ -20,9 +21,9 @@ def test_scaled_budget_scales_every_stage_and_keeps_each_at_least_one():
 
 
 def test_spread_of_what_was_measured():
-    s = budget_sweep.spread([1.0, None, 3.0, float("nan")])
+    s = spread([1.0, None, 3.0, float("nan")])
     assert s == {"mean": 2.0, "std": pytest.approx(2 ** 0.5), "min": 1.0, "max": 3.0, "n": 2}
-    assert budget_sweep.spread([None])["mean"] is None and budget_sweep.spread([5.0])["std"] == 0.0
+    assert spread([None])["mean"] is None and spread([5.0])["std"] == 0.0
 
 
 def _row(seed: int, masked: float, full: float, ours_s: float) -> dict:

@@ -9,11 +9,12 @@ nothing more after a suite run.
 
 from __future__ import annotations
 
-import statistics
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
+
+from splatreplace_ns.bench.output import spread
 
 
 def scaled_budget(scale: float, base: int, contrastive: int, finetune: int) -> Tuple[int, int, int]:
@@ -21,15 +22,6 @@ def scaled_budget(scale: float, base: int, contrastive: int, finetune: int) -> T
     if not scale > 0:
         raise ValueError(f"a budget scale must be positive, got {scale}")
     return tuple(max(1, int(round(scale * n))) for n in (base, contrastive, finetune))  # type: ignore[return-value]
-
-
-def spread(values: Sequence[Optional[float]]) -> Dict[str, Optional[float]]:
-    """Mean, sample standard deviation, min and max of the values that are there (None: not measured)."""
-    there = [float(v) for v in values if v is not None and np.isfinite(v)]
-    if not there:
-        return {"mean": None, "std": None, "min": None, "max": None, "n": 0}
-    return {"mean": statistics.fmean(there), "std": statistics.stdev(there) if len(there) > 1 else 0.0,
-            "min": min(there), "max": max(there), "n": len(there)}
 
 
 def budget_point(scale: float, budget: Tuple[int, int, int], rows: List[Dict]) -> Dict:
@@ -68,11 +60,14 @@ def run_budget_sweep(cfg) -> Dict:
             "points": points}
 
 
-def _fmt(stat: Dict[str, Optional[float]], unit: str = "", scale: float = 1.0) -> str:
-    if stat["mean"] is None:
-        return "n/a"
-    return f"{stat['mean'] * scale:+.2f} ± {stat['std'] * scale:.2f}{unit}" if not unit else \
-        f"{stat['mean'] * scale:.1f} ± {stat['std'] * scale:.1f}{unit}"
+def _gain(stat: Dict[str, Optional[float]]) -> str:
+    """``+1.05 ± 1.10`` (dB) or ``n/a``."""
+    return "n/a" if stat["mean"] is None else f"{stat['mean']:+.2f} ± {stat['std']:.2f}"
+
+
+def _minutes(stat: Dict[str, Optional[float]]) -> str:
+    """Seconds shown as ``6.2 ± 1.2`` minutes, or ``n/a``."""
+    return "n/a" if stat["mean"] is None else f"{stat['mean'] / 60:.1f} ± {stat['std'] / 60:.1f}"
 
 
 def print_budget_table(result: Dict) -> None:
@@ -83,9 +78,9 @@ def print_budget_table(result: Dict) -> None:
     for p in result["points"]:
         it = p["iterations"]
         iterations = f"{it['base']}+{it['contrastive']}+{it['finetune']}; {it['baseline']}"
-        print(f"{'x' + format(p['scale'], 'g'):>7} {iterations:>26} {_fmt(p['gain_masked']):>16} "
-              f"{_fmt(p['gain_full']):>16} {p['scenes_worse_masked']:>3}/{p['gain_masked']['n']:<2} "
-              f"{_fmt(p['ours_s'], ' ', 1 / 60):>12} {_fmt(p['baseline_s'], ' ', 1 / 60):>12}")
+        print(f"{'x' + format(p['scale'], 'g'):>7} {iterations:>26} {_gain(p['gain_masked']):>16} "
+              f"{_gain(p['gain_full']):>16} {p['scenes_worse_masked']:>3}/{p['gain_masked']['n']:<2} "
+              f"{_minutes(p['ours_s']):>12} {_minutes(p['baseline_s']):>12}")
 
 
 def write_budget_plot(result: Dict, path: Path, size: Tuple[int, int] = (760, 520)) -> None:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
+import statistics
 from pathlib import Path
-from typing import Any, Callable, Dict, Optional
+from typing import Any, Callable, Dict, Optional, Sequence
 
 
 def write_result_json(result: Dict[str, Any], path: Optional[Path]) -> None:
@@ -29,6 +31,15 @@ def publish(result: Dict[str, Any], table: Callable[[Dict], None], json_path: Op
     draw(result, plot)
     print(f"wrote {plot}")
     return result
+
+
+def spread(values: Sequence[Optional[float]]) -> Dict[str, Optional[float]]:
+    """Mean, sample standard deviation, min and max of the values that are there (None or NaN: not measured)."""
+    there = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not there:
+        return {"mean": None, "std": None, "min": None, "max": None, "n": 0}
+    return {"mean": statistics.fmean(there), "std": statistics.stdev(there) if len(there) > 1 else 0.0,
+            "min": min(there), "max": max(there), "n": len(there)}
 
 
 def fmt_number(value: Optional[float], digits: int = 2, signed: bool = False) -> str:

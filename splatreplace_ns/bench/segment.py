@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import os
 import platform
-import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +41,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from splatreplace_ns.eval.segmentation import score_gaussian_labels_in_views, score_views_from_clicks
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.bench.output import spread, write_result_json
 
 
 @dataclass
@@ -363,12 +362,6 @@ def _lift_run(cfg: BenchSegmentConfig, scene: str) -> Dict:
     return row
 
 
-def _spread(values: List[float]) -> Dict:
-    values = [float(v) for v in values]
-    return {"mean": statistics.fmean(values), "std": statistics.stdev(values) if len(values) > 1 else 0.0,
-            "min": min(values), "max": max(values), "n": len(values)}
-
-
 def run_lift_bench(cfg: BenchSegmentConfig) -> Dict:
     """The voting lift against the contrastive stage on every scene; per-scene rows and mean ± std over them."""
     import nerfstudio
@@ -383,11 +376,11 @@ def run_lift_bench(cfg: BenchSegmentConfig) -> Dict:
     summary: Dict = {}
     for share in cfg.vote_min_shares:
         key = f"share_{share:g}"
-        summary[f"voting_{key}"] = {"miou": _spread([r["voting"][key]["miou"] for r in rows]),
-                                    "time_s": _spread([r["voting"]["time_s"] for r in rows])}
+        summary[f"voting_{key}"] = {"miou": spread([r["voting"][key]["miou"] for r in rows]),
+                                    "time_s": spread([r["voting"]["time_s"] for r in rows])}
     for steps in rows[0]["contrastive"]:
-        summary[f"contrastive_{steps}"] = {"miou": _spread([r["contrastive"][steps]["miou"] for r in rows]),
-                                           "time_s": _spread([r["contrastive"][steps]["time_s"] for r in rows])}
+        summary[f"contrastive_{steps}"] = {"miou": spread([r["contrastive"][steps]["miou"] for r in rows]),
+                                           "time_s": spread([r["contrastive"][steps]["time_s"] for r in rows])}
     return {
         "benchmark": "segment_lift",
         "definition": ("mIoU over the instances of the test views' masks rendered from the clicks' selection "
