@@ -15,6 +15,7 @@ import tyro
 from typing_extensions import Annotated
 
 from splatreplace_ns.bench.capture import BenchCaptureConfig
+from splatreplace_ns.bench.mask_passes import BenchMaskPassesConfig
 from splatreplace_ns.bench.masks import BenchMasksConfig
 from splatreplace_ns.bench.register import BenchRegisterConfig
 from splatreplace_ns.bench.render import BenchRenderConfig
@@ -36,6 +37,7 @@ BenchCommands = Union[
     Annotated[BenchTemplateConfig, tyro.conf.subcommand("template")],
     Annotated[BenchRegisterConfig, tyro.conf.subcommand("register")],
     Annotated[BenchMasksConfig, tyro.conf.subcommand("masks")],
+    Annotated[BenchMaskPassesConfig, tyro.conf.subcommand("mask-passes")],
     Annotated[BenchTradeoffConfig, tyro.conf.subcommand("tradeoff")],
     Annotated[BenchSuiteConfig, tyro.conf.subcommand("suite")],
     Annotated[BenchCaptureConfig, tyro.conf.subcommand("capture")],

@@ -43,6 +43,9 @@ class BenchMasksConfig:
 
     preset: str = "office"
     """Synthetic preset (office, temple, chess, ...)."""
+    suite_seed: Optional[int] = None
+    """A scene of the scene suite (``splatreplace sim random`` with this seed, as ``bench suite`` makes it under
+    ``data_root/suite``) instead of the preset."""
     json: Optional[Path] = None
     """Where to write the results as JSON."""
     res: str = "160x120"
@@ -206,6 +209,10 @@ def oracle_masks(base_config: Path, capture: Path, scene: Path, depth_tolerance:
 def _scene(cfg: BenchMasksConfig) -> Path:
     from splatreplace_ns.bench.scenes import cached_scene
 
+    if cfg.suite_seed is not None:
+        from splatreplace_ns.bench.suite import cached_random_scene
+
+        return cached_random_scene(cfg.suite_seed, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root / "suite")
     return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
 
 
@@ -344,7 +351,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
 
     return {
         "benchmark": "masks",
-        "preset": cfg.preset,
+        "preset": cfg.preset if cfg.suite_seed is None else scene.name,
         "rows": rows,
         "oracle": oracle,
         "downstream": downstream,
