@@ -22,8 +22,11 @@ def test_every_variant_changes_real_settings_away_from_the_defaults():
         assert any(getattr(defaults, k) != v for k, v in settings.items()), name
     assert set(POST_PASSES) <= set(PASSES)
     assert variant_settings("defaults") == {}
+    assert variant_settings("one_piece+floor_band") == {**PASSES["one_piece"], **PASSES["floor_band"]}
     with pytest.raises(ValueError, match="unknown pass"):
         variant_settings("no_such_rule")
+    with pytest.raises(ValueError, match="unknown pass"):
+        variant_settings("one_piece+no_such_rule")
 
 
 def _run(miou, ious):

@@ -50,14 +50,19 @@ ALL_POST_PASSES = "all_post_passes"
 
 
 def variant_settings(name: str) -> Dict[str, object]:
-    """The ClusteringConfig fields a variant changes (``defaults``: none; ``all_post_passes``: every post-pass)."""
+    """The ClusteringConfig fields a variant changes (``defaults``: none; ``all_post_passes``: every post-pass;
+    ``a+b``: rules a and b)."""
     if name == "defaults":
         return {}
     if name == ALL_POST_PASSES:
         return {k: v for p in POST_PASSES for k, v in PASSES[p].items()}
-    if name not in PASSES:
-        raise ValueError(f"unknown pass {name!r}; one of: defaults, {ALL_POST_PASSES}, {', '.join(PASSES)}")
-    return dict(PASSES[name])
+    settings: Dict[str, object] = {}
+    for part in name.split("+"):  # several rules out at once: their names joined by '+'
+        if part not in PASSES:
+            raise ValueError(f"unknown pass {part!r}; one of: defaults, {ALL_POST_PASSES}, {', '.join(PASSES)} "
+                             "(or several joined by '+')")
+        settings.update(PASSES[part])
+    return settings
 
 
 @dataclass
@@ -67,7 +72,8 @@ class BenchMaskPassesConfig:
     seeds: Tuple[int, ...] = (0, 1, 2, 3, 4, 5)
     """Dev-split scenes (``bench suite``'s seeds)."""
     passes: Tuple[str, ...] = (*PASSES, ALL_POST_PASSES)
-    """Rules to take out, one run each (``all_post_passes``: every pass after the split at once)."""
+    """Rules to take out, one run each (``all_post_passes``: every pass after the split at once; ``a+b``: rules a
+    and b at once)."""
     res: str = "128x96"
     """Scene resolution WxH (the suite's default)."""
     n_train: int = 48
@@ -91,8 +97,9 @@ class BenchMaskPassesConfig:
 
 def _scene_run(cfg: BenchMaskPassesConfig, seed: int, name: str, base_config: Optional[Path]) -> Dict:
     """One variant on one scene: mIoU, per-instance IoU, clustering time, and the base model's config."""
-    from splatreplace_ns.bench.masks import BenchMasksConfig, run_masks_bench
+    from splatreplace_ns.bench.masks import BenchMasksConfig, run_masks_bench, scene_of
     from splatreplace_ns.masks.clustering import ClusteringConfig
+    from splatreplace_ns.masks.lifting import ClickError
 
     masks_cfg = BenchMasksConfig(
         suite_seed=seed, res=cfg.res, n_train=cfg.n_train, n_test=cfg.n_test, base_iterations=cfg.base_iterations,
@@ -100,7 +107,16 @@ def _scene_run(cfg: BenchMaskPassesConfig, seed: int, name: str, base_config: Op
         downstream=False, oracle=base_config is None, data_root=cfg.data_root, out_dir=cfg.out_dir,
     )
     start = time.perf_counter()
-    result = run_masks_bench(masks_cfg)
+    try:
+        result = run_masks_bench(masks_cfg)
+    except ClickError as err:  # no click made an instance: every instance scores IoU 0
+        if base_config is None:
+            raise  # the defaults' run must give the scene's base model
+        clicks = json.loads((scene_of(masks_cfg) / "clicks.json").read_text())
+        return {"scene": scene_of(masks_cfg).name, "miou": 0.0, "boundary_f": 0.0,
+                "iou_per_instance": {str(c["id"]): 0.0 for c in clicks}, "masks_s": None,
+                "wall_s": time.perf_counter() - start, "skipped_clicks": str(err).splitlines()[1:],
+                "base_config": str(base_config), "base_s": None, "ceiling_miou": None}
     row = result["rows"][0]
     return {
         "scene": result["preset"], "miou": row["miou"], "boundary_f": row["boundary_f"],

@@ -206,7 +206,7 @@ def oracle_masks(base_config: Path, capture: Path, scene: Path, depth_tolerance:
 # ----------------------------------------------------------------------------- runs
 
 
-def _scene(cfg: BenchMasksConfig) -> Path:
+def scene_of(cfg: BenchMasksConfig) -> Path:
     from splatreplace_ns.bench.scenes import cached_scene
 
     if cfg.suite_seed is not None:
@@ -295,7 +295,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
     from splatreplace_ns.masks.render import BorderConfig
 
     torch.set_num_threads(1)  # measured faster than 2 on the shared two-core machines
-    scene = _scene(cfg)
+    scene = scene_of(cfg)
     # one capture folder per scene (preset, resolution, views): runs at two resolutions must not share one
     root = cfg.data_root / f"masks_{scene.name}"
     rows, base_config, base_s = [], cfg.load_config, None
