@@ -127,29 +127,6 @@ def test_floor_removed_and_clicked_boxes_found_touching_ones_split():
     assert (ids[truth == 0] == 0).mean() > 0.97
 
 
-def test_floor_found_under_a_sparse_sky():
-    """An outdoor capture keeps sparse Gaussians far away (sky, floaters). Counted in the scene's diagonal they
-    made the floor "too small" to be a support, so nothing was removed and the floor joined the boxes; the
-    diagonal of the dense part keeps the floor a floor. Off (``dense_spacing`` 0), the floor stays."""
-    means, truth, colours = boxes_on_a_floor()
-    rng = np.random.default_rng(1)
-    direction = rng.normal(size=(3000, 3))
-    direction[:, 2] = np.abs(direction[:, 2])
-    sky = 8.0 * direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(0.8, 1.2, (3000, 1))
-    all_means = np.concatenate([means, sky])
-    opacities = np.ones(len(all_means))
-    all_colours = np.concatenate([colours, np.full((3000, 3), 0.7)])
-    clicks = [lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.8, -0.1, 0.5]), lifted(2, [0.8, 0.6, 0.5])]
-    cfg = ClusteringConfig()
-    clustering = cluster_gaussians(all_means, opacities, cfg)
-    assert len(clustering.planes) == 1 and abs(clustering.planes[0][2]) > 0.99
-    ids = instance_ids(clicks, all_means, opacities, all_colours, clustering, cfg)[: len(means)]
-    for k in (1, 2, 3):
-        a, b = ids == k, truth == k
-        assert (a & b).sum() / (a | b).sum() > 0.9, k
-    assert cluster_gaussians(all_means, opacities, ClusteringConfig(dense_spacing=0.0)).planes == []
-
-
 def test_weighted_median_counts_each_value_weight_times():
     rng = np.random.default_rng(0)
     values = rng.uniform(0, 1, 201)
@@ -209,41 +186,6 @@ def test_length_unit_counts_views_so_a_far_floor_does_not_set_it():
         assert (a & b).sum() / (a | b).sum() > 0.9, k
     with pytest.raises(ClickError, match="same object"):
         instance_ids(clicks, means, opacities, colours, once, cfg)
-
-
-def test_plane_through_a_colonnade_is_not_a_support():
-    """Five square posts under a beam on a floor: the floor has nothing under it, a plane through the posts
-    has the colonnade on both sides. Only the floor is removed; without the one-side test planes through
-    the posts are removed too, and with them part of every post."""
-    from splatreplace_ns.masks.clustering import neighbourhood_spacing, remove_planes, two_sidedness
-
-    rng = np.random.default_rng(0)
-
-    def box(lo, hi, n, bottom=False):
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        size = hi - lo
-        areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
-        face = rng.choice(3, n, p=areas / areas.sum())
-        pts = rng.uniform(lo, hi, (n, 3))
-        high = rng.integers(0, 2, n).astype(bool)
-        if not bottom:
-            high[face == 2] = True  # a post's foot stands on the floor: no Gaussian there
-        pts[np.arange(n), face] = np.where(high, hi[face], lo[face])
-        return pts
-
-    floor = np.c_[rng.uniform(-4, 4, (8000, 2)), rng.normal(0, 0.002, 8000)]
-    posts = [box([x - 0.15, -0.15, 0.0], [x + 0.15, 0.15, 1.0], 1200) for x in (-2, -1, 0, 1, 2)]
-    beam = box([-2.6, -0.15, 1.0], [2.6, 0.15, 1.3], 4000, bottom=True)
-    means = np.concatenate([floor] + posts + [beam])
-    spacing = neighbourhood_spacing(means, 8)
-    threshold = ClusteringConfig().plane_distance * spacing
-    assert two_sidedness(means, np.array([0.0, 0.0, 1.0, 0.0]), threshold) == 0.0  # the floor
-    assert two_sidedness(means, np.array([0.0, 1.0, 0.0, 0.0]), threshold) > 0.45  # through the posts' axes
-    on_plane, planes = remove_planes(means, spacing, ClusteringConfig())
-    assert len(planes) == 1 and abs(planes[0][2]) > 0.99
-    assert on_plane[8000:14000].mean() < 0.01
-    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(max_two_sidedness=0.5))
-    assert len(planes) > 1 and on_plane[8000:14000].mean() > 0.02
 
 
 def test_refined_plane_does_not_depend_on_the_ransac_sample():
@@ -336,129 +278,6 @@ def test_random_walk_split_leaves_the_beam_over_three_posts_to_the_background():
     assert set(np.unique(beam_owner)) <= {0, 1, 2, SHARED}
     everything = random_walk_split(means, colours, seeds, spacing=0.05, cfg=ClusteringConfig(split_min_probability=0.0))
     assert set(np.unique(everything)) == {0, 1, 2}
-
-
-def test_structure_over_a_colonnade_goes_to_the_background_and_capitals_stay():
-    """Five posts with a wider capital and plinth, under a beam and on a step wider than they are, each post
-    clicked at its middle. The beam and the step are reached from many clicks (perplexity above 3): they go to
-    the background, while each post keeps what lies within two spacings of its own points. Without the rule
-    every middle post takes a strip of the beam and of the step (IoU with its true points 0.62–0.65; with it
-    0.76–0.79)."""
-    from splatreplace_ns.masks.clustering import SHARED, neighbourhood_spacing, random_walk_split
-
-    rng = np.random.default_rng(0)
-
-    def block(lo, hi, density):
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        return rng.uniform(lo, hi, (int(density * np.prod(hi - lo)), 3))
-
-    xs = np.arange(5) - 2.0
-    parts, truth = [], []
-    for k, x in enumerate(xs):
-        post = np.concatenate([block([x - 0.1, -0.1, 0.15], [x + 0.1, 0.1, 0.95], 40000),  # shaft
-                               block([x - 0.18, -0.18, 0.95], [x + 0.18, 0.18, 1.0], 40000),  # capital
-                               block([x - 0.18, -0.18, 0.1], [x + 0.18, 0.18, 0.15], 40000)])  # plinth
-        parts.append(post)
-        truth.append(np.full(len(post), k))
-    beam = block([-2.25, -0.3, 1.0], [2.25, 0.3, 1.3], 20000)
-    step = block([-2.25, -0.4, 0.0], [2.25, 0.4, 0.1], 20000)
-    means = np.concatenate(parts + [beam, step])
-    truth = np.concatenate(truth + [np.full(len(beam) + len(step), SHARED)])
-    colours = np.clip(0.7 + rng.normal(0, 0.02, means.shape), 0, 1)
-    spacing = neighbourhood_spacing(means, 8)
-    seeds = [int(np.argmin(np.linalg.norm(means - [x, 0, 0.55], axis=1))) for x in xs]
-
-    def scores(cfg):
-        owner = random_walk_split(means, colours, seeds, spacing, cfg)
-        ious = [((owner == k) & (truth == k)).sum() / ((owner == k) | (truth == k)).sum() for k in (1, 2, 3)]
-        taken = np.isin(owner[truth == SHARED], (1, 2, 3)).mean()
-        return np.array(ious), taken
-
-    with_rule, taken_with = scores(ClusteringConfig())
-    without, taken_without = scores(ClusteringConfig(split_structure_perplexity=0.0))
-    assert (with_rule > without + 0.08).all(), (with_rule, without)
-    assert taken_with < 0.6 * taken_without, (taken_with, taken_without)
-
-
-def test_a_click_where_the_model_is_sparse_still_gets_a_seed_of_its_size():
-    """A click at a sparse spot gets as seed its nearest points, as many as half the median seed ball of the
-    cluster's clicks; clicks in dense parts keep their balls, and a sparse seed stays on its side."""
-    from splatreplace_ns.masks.clustering import random_walk
-
-    rng = np.random.default_rng(0)
-    dense = rng.uniform([-1.0, -0.2, 0.0], [0.0, 0.2, 1.0], (4000, 3))
-    sparse = rng.uniform([0.0, -0.2, 0.0], [1.0, 0.2, 1.0], (300, 3))
-    means = np.concatenate([dense, sparse])
-    colours = np.full_like(means, 0.5)
-    seeds = [int(np.argmin(np.linalg.norm(means - [-0.5, 0, 0.25], axis=1))),
-             int(np.argmin(np.linalg.norm(means - [-0.5, 0, 0.75], axis=1))),
-             4000 + int(np.argmin(np.linalg.norm(sparse - [0.5, 0, 0.5], axis=1)))]
-    spacing = 0.1
-    plain = random_walk(means, colours, seeds, spacing, ClusteringConfig(split_seed_min_fraction=0.0))
-    sized = random_walk(means, colours, seeds, spacing, ClusteringConfig())
-    balls = [int((plain.marked == j).sum()) for j in range(3)]
-    assert balls[2] < 0.25 * min(balls[:2]), balls
-    assert (sized.marked == 2).sum() == int(0.5 * np.median(balls))
-    assert [int((sized.marked == j).sum()) for j in range(2)] == balls[:2]
-    assert ((sized.marked == 2) & (np.arange(len(means)) < 4000)).sum() == 0
-
-
-def test_a_back_its_own_texture_cuts_off_goes_to_its_seat_not_to_the_table_it_touches():
-    """A chair: a blue seat and a back of red and white squares standing on it, whose top touches a wooden
-    table. At this spacing the colour-weighted edges between the squares are weaker than the walk's leak: from
-    the back the walk reaches its seeds with probability 0.004 (median), and the table got what little there
-    was. Those points take the probabilities of a walk without colour weights, by which the back stands on the
-    seat; seat and table stay whole, and points the colour walk reaches well keep its answer."""
-    from splatreplace_ns.masks.clustering import random_walk, rewalk_weakly_reached, walk_owners
-
-    rng = np.random.default_rng(0)
-    seat = rng.uniform([0, 0, 0], [1, 1, 0.15], (3000, 3))
-    back = rng.uniform([0, 0.85, 0.15], [1, 1, 1.2], (3000, 3))
-    table = rng.uniform([1.0, 0.3, 0.95], [2.2, 1.2, 1.05], (3000, 3))
-    means = np.concatenate([seat, back, table])
-    square = (np.floor(back[:, 0] / 0.2) + np.floor(back[:, 2] / 0.2)).astype(int) % 2
-    colours = np.concatenate([np.tile([0.1, 0.1, 0.8], (3000, 1)),
-                              np.where(square[:, None] == 1, [0.95, 0.95, 0.9], [0.85, 0.15, 0.1]),
-                              np.tile([0.55, 0.4, 0.25], (3000, 1))])
-    colours = np.clip(colours + rng.normal(0, 0.01, colours.shape), 0, 1)
-    seeds = [int(np.argmin(np.linalg.norm(means - [0.5, 0.5, 0.07], axis=1))),
-             int(np.argmin(np.linalg.norm(means - [1.6, 0.75, 1.0], axis=1)))]
-    cfg = ClusteringConfig()
-    walk = random_walk(means, colours, seeds, 0.012, cfg)
-    reach = np.ones(len(means))
-    reach[walk.free] = walk.probabilities.sum(axis=1)
-    assert np.median(reach[3000:6000]) < 0.01 and reach[:3000].min() > 0.99 and reach[6000:].min() > 0.99
-    before = walk_owners(walk, means, cfg)
-    assert (before[3000:6000] == 0).mean() < 0.05
-    after = walk_owners(rewalk_weakly_reached(walk, means, colours, seeds, cfg), means, cfg)
-    weak = reach < cfg.split_reach_mass
-    assert (after[weak] == 0).mean() > 0.85, (after[weak] == 0).mean()
-    assert (after[~weak] == before[~weak]).all()
-    assert (after[3000:6000] == 0).mean() > 0.4  # the squares that touch the table stay the walk's (to the prior)
-    assert (after[:3000] == 0).all() and (after[6000:] == 1).all()
-    off = rewalk_weakly_reached(walk, means, colours, seeds, ClusteringConfig(split_reach_mass=0.0))
-    assert off is walk
-
-
-def test_perplexity_counts_the_labels_that_share_a_point():
-    from splatreplace_ns.masks.clustering import perplexity
-
-    p = np.array([[1.0, 0.0, 0.0, 0.0], [0.5, 0.5, 0.0, 0.0], [0.25, 0.25, 0.25, 0.25], [0.7, 0.1, 0.1, 0.1]])
-    np.testing.assert_allclose(perplexity(p)[:3], [1.0, 2.0, 4.0], rtol=1e-9)
-    assert 1.0 < perplexity(p)[3] < 3.0
-
-
-def test_keep_borders_gives_near_shared_points_to_the_nearest_instance_only():
-    """Shared points within the radius of a click's points join the nearest click; farther ones, unreached
-    ones (-1) and those the background's seed won stay as they are."""
-    from splatreplace_ns.masks.clustering import SHARED, keep_borders
-
-    means = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.2, 0, 0], [0.85, 0, 0], [0.5, 0, 0], [0.1, 0, 0], [0.9, 0, 0]])
-    owner = np.array([0, 1, SHARED, SHARED, SHARED, SHARED, -1])
-    may_join = np.array([True, True, True, True, True, False, True])
-    out = keep_borders(means, owner, may_join, radius=0.25)
-    np.testing.assert_array_equal(out, [0, 1, 0, 1, SHARED, SHARED, -1])
-    np.testing.assert_array_equal(keep_borders(means, np.full(7, SHARED), may_join, 0.25), np.full(7, SHARED))
 
 
 def test_normal_weight_cuts_the_split_where_the_surface_turns():
@@ -710,64 +529,6 @@ def test_masks_of_a_distorted_frame_render_from_a_camera_on_the_gpu():
     assert mask[6, 8] == 1 and mask[0, 0] == 0  # the instance stays where it was rendered, near the centre
 
 
-def chair_back_against_a_table():
-    """A chair (seat, a post and a back plate, all red) whose back leans on the top of a wooden table: the back
-    touches the table along its top strip and reaches its seat through one thin post. Returns means, colours,
-    truth (1 chair, 2 table), spacing, and the chair's back as a boolean mask."""
-    from splatreplace_ns.masks.clustering import kth_neighbour_distances
-
-    rng = np.random.default_rng(0)
-    seat = rng.uniform([-1, 0, 0], [-0.5, 0.5, 0.1], (600, 3))
-    post = rng.uniform([-0.55, 0.2, 0.1], [-0.5, 0.3, 0.5], (60, 3))
-    back = rng.uniform([-0.5, 0, 0.5], [-0.45, 0.5, 1.0], (400, 3))
-    table = rng.uniform([-0.45, 0, 0.85], [0.5, 0.5, 1.0], (2500, 3))
-    means = np.concatenate([seat, post, back, table])
-    truth = np.repeat([1, 1, 1, 2], [600, 60, 400, 2500])
-    colours = np.where((truth == 1)[:, None], [0.8, 0.2, 0.2], [0.55, 0.5, 0.45])
-    colours = np.clip(colours + rng.normal(0, 0.02, colours.shape), 0, 1)
-    is_back = np.zeros(len(means), dtype=bool)
-    is_back[660:1060] = True
-    return means, colours, truth, float(np.median(kth_neighbour_distances(means, 8))), is_back
-
-
-def test_class_colour_prior_gives_the_chair_back_leaning_on_a_table_to_the_chair():
-    """The walk alone gives the back to the table (its contact is wider than the post); the chair class's
-    colour model (red, from its seat) against the table's (wood) gives it to the chair. Off, it stays the table's."""
-    from splatreplace_ns.masks.clustering import Clustering
-
-    means, colours, truth, spacing, is_back = chair_back_against_a_table()
-    clustering = Clustering(np.zeros(len(means), dtype=np.int64), spacing)
-    clicks = [LiftedClick(0, 0, (0.0, 0.0), "chair", torch.tensor([-0.75, 0.25, 0.05]), "click 0"),
-              LiftedClick(1, 0, (0.0, 0.0), "table", torch.tensor([0.0, 0.25, 0.92]), "click 1")]
-    opacities = np.ones(len(means))
-    with_prior = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=2.0))
-    without = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=0.0))
-    assert (with_prior == truth).mean() > 0.99
-    assert (with_prior[is_back] == 1).all()
-    assert (without[is_back] == 2).mean() > 0.9  # the walk alone gets it wrong: the prior is what fixes it
-
-
-def test_colour_prior_leaves_the_split_between_copies_to_the_walk():
-    """Three posts of one class under a beam: each post's colour model is the class's, so the prior is the same
-    for every click and the split is exactly the walk's."""
-    from splatreplace_ns.masks.clustering import Clustering
-
-    xs, posts, beam, means, colours = posts_under_a_beam()
-    clustering = Clustering(np.zeros(len(means), dtype=np.int64), 0.05)
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.0, 0.5]), f"click {k}") for k, x in enumerate(xs)]
-    opacities = np.ones(len(means))
-    with_prior = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=2.0))
-    without = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=0.0))
-    assert (with_prior == without).all()
-    for k in range(3):
-        assert (with_prior[800 * k : 800 * (k + 1)] == k + 1).all()
-    # the equality comes from the shared class model: posts of three classes get three models, which differ
-    # by their samples, and the prior then moves part of the beam
-    mixed = [LiftedClick(k, 0, (0.0, 0.0), f"post{k}", torch.tensor([x, 0.0, 0.5]), f"click {k}") for k, x in enumerate(xs)]
-    assert (instance_ids(mixed, means, opacities, colours, clustering, ClusteringConfig(split_colour_prior=2.0))
-            != with_prior).any()
-
-
 def test_floor_as_background_takes_the_fuzz_a_box_is_linked_to():
     """A box on a floor with a patch of floor fuzz (1.7 to 2.1 spacings above the floor, off its plane) linked to
     the box by a line of fuzz: one DBSCAN cluster. Without a background in the walk the box's click owns the
@@ -835,46 +596,6 @@ def test_a_pieces_foot_in_the_boards_plane_band_is_given_back_by_its_colour():
     assert (ids[len(board):] == 1).mean() > 0.97
 
 
-def pawns_one_running_on_into_fuzz(seed: int = 0):
-    """Three upright cylinders (pawns) 0.3 tall, and a patch of fuzz 1 away from the first, joined to it by a
-    line of fuzz (one cluster with it). Returns means, truth (1–3 the pawns, 9 the fuzz), the clustering and
-    the clicks (at each pawn's middle)."""
-    from splatreplace_ns.masks.clustering import Clustering
-
-    rng = np.random.default_rng(seed)
-    pawns, labels = [], []
-    for k, x in enumerate((0.0, 0.6, 1.2)):
-        angle, z = rng.uniform(0, 2 * np.pi, 800), rng.uniform(0, 0.3, 800)
-        pawns.append(np.c_[x + 0.05 * np.cos(angle), 0.05 * np.sin(angle), z])
-        labels.append(np.full(800, k + 1))
-    line = np.c_[np.zeros(80), np.linspace(-0.06, -1.0, 80), np.full(80, 0.02)]
-    patch = np.c_[rng.uniform(-0.2, 0.2, 600), rng.uniform(-1.3, -1.0, 600), rng.uniform(0.0, 0.04, 600)]
-    means = np.concatenate(pawns + [line, patch])
-    truth = np.concatenate(labels + [np.full(680, 9)])
-    cluster = np.where(truth == 9, 0, truth - 1)  # the fuzz in the first pawn's cluster
-    clustering = Clustering(cluster.astype(np.int64), 0.02)
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), "pawn", torch.tensor([x + 0.05, 0.0, 0.15]), f"click {k}")
-              for k, x in enumerate((0.0, 0.6, 1.2))]
-    return means, truth, clustering, clicks
-
-
-def test_what_lies_farther_from_a_click_than_its_class_is_large_is_background():
-    """The first pawn's cluster holds a patch of fuzz a metre away: the two other pawns set the class's size
-    (0.3 tall, 0.1 wide), and nothing farther than that from the click stays with it. Off, the patch is the
-    pawn's; a class of one instance has no size and is left alone."""
-    means, truth, clustering, clicks = pawns_one_running_on_into_fuzz()
-    opacities = np.ones(len(means))
-    colours = np.full((len(means), 3), 0.5)
-    ids = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig())
-    off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(class_size_cut=0.0))
-    for k in (1, 2, 3):
-        assert (ids[truth == k] == k).all()  # no pawn loses anything: a pawn fits within its class's size
-    assert (off[truth == 9] == 1).all()
-    assert (ids[truth == 9] == 0).mean() > 0.95
-    alone = [LiftedClick(0, 0, (0.0, 0.0), "king", clicks[0].point, "click 0")] + list(clicks[1:])
-    assert (instance_ids(alone, means, opacities, colours, clustering, ClusteringConfig())[truth == 9] == 1).all()
-
-
 def test_geodesic_split_still_makes_every_instance_with_the_colour_steps_on():
     """The colour reclaim and the size cut read each class's colour model; with the geodesic split it comes from
     the split's own owners (a class seen only in a split cluster used to have none)."""
@@ -889,10 +610,9 @@ def test_geodesic_split_still_makes_every_instance_with_the_colour_steps_on():
         assert (a & b).sum() / (a | b).sum() > 0.85, k
 
 
-def test_an_island_no_click_reaches_is_adopted_by_its_neighbour_whatever_the_colour_prior():
-    """Points the walk reaches only at leak level (probabilities below 1e-6) are unreached: they go to the side
-    of the nearest reached point. The colour prior renormalises the probabilities and must not turn those
-    leak-level values into a confident choice (here it favours the far click strongly)."""
+def test_an_island_no_click_reaches_is_adopted_by_its_neighbour():
+    """Points the walk reaches only at leak level (probabilities below 1e-6, here favouring the far click) are
+    unreached: they go to the side of the nearest reached point."""
     from splatreplace_ns.masks.clustering import Walk, knn_graph, walk_owners
 
     rng = np.random.default_rng(0)
@@ -906,9 +626,7 @@ def test_an_island_no_click_reaches_is_adopted_by_its_neighbour_whatever_the_col
     probabilities = np.where((free < 300)[:, None], [1.0, 0.0], [0.0, 1.0])
     probabilities[free >= 600] = [1e-8, 3e-9]  # leak level
     walk = Walk(marked, free, probabilities, knn_graph(means, np.full_like(means, 0.5), 0.1, ClusteringConfig()), 2)
-    prior = np.full((len(free), 2), 0.5)
-    prior[free >= 600] = [0.999, 0.001]
-    owner = walk_owners(walk, means, ClusteringConfig(), prior)
+    owner = walk_owners(walk, means, ClusteringConfig())
     assert (owner[:300] == 0).all() and (owner[300:600] == 1).all()
     assert (owner[600:] == 1).all()  # adopted by the right box next to it
 
@@ -926,32 +644,6 @@ def test_sparse_instances_names_the_copies_the_base_model_barely_holds():
     assert sparse_instances(counts, classes, 0.0) == []
 
 
-def test_size_cut_across_the_floor_drops_a_strip_of_beam_within_a_columns_height():
-    """Three upright posts (0.2 wide, 1 tall) clicked at mid-height; one instance also holds a strip of the
-    beam above it, 0.5 to the side: within the post's 3D size (about 1.05) from its click, but beyond its
-    width across the floor. With the floor's normal the strip goes to the background and the posts stay whole;
-    without it the strip stays."""
-    from splatreplace_ns.masks.clustering import cut_beyond_class_size, floor_plane
-    from splatreplace_ns.masks.lifting import LiftedClick
-
-    rng = np.random.default_rng(0)
-    posts = [np.c_[rng.uniform(x - 0.1, x + 0.1, 500), rng.uniform(-0.1, 0.1, 500), rng.uniform(0, 1, 500)] for x in (0, 2, 4)]
-    strip = np.c_[rng.uniform(0.4, 0.6, 60), rng.uniform(-0.1, 0.1, 60), rng.uniform(0.95, 1.0, 60)]
-    means = np.concatenate(posts + [strip])
-    ids = np.concatenate([np.full(500, 1), np.full(500, 2), np.full(500, 3), np.full(60, 1)])
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.0, 0.5], dtype=torch.float64), f"click {k}")
-              for k, x in enumerate((0, 2, 4))]
-    opacities = np.ones(len(means))
-    plain = cut_beyond_class_size(ids, means, opacities, clicks, ClusteringConfig())
-    assert (plain == ids).all()
-    up = floor_plane([np.array([0.0, 0.05, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, -3.0])])[:3]
-    np.testing.assert_allclose(up, np.array([0.0, 0.05, 1.0]) / np.linalg.norm([0.0, 0.05, 1.0]))
-    across = cut_beyond_class_size(ids, means, opacities, clicks, ClusteringConfig(), up)
-    assert (across[1500:] == 0).all() and (across[:1500] == ids[:1500]).all()
-    assert floor_plane([np.array([1.0, 0.0, 0.0, -3.0])]) is None  # walls only: no floor
-    assert floor_plane([np.array([0.0, 0.0, -2.0, 1.0])])[2] == 1.0  # pointing up whatever the plane's sign
-
-
 def _box(rng, lo, hi, n):
     return rng.uniform(lo, hi, (n, 3))
 
@@ -964,78 +656,39 @@ def _table_at(rng, x0):
             parts.append(_box(rng, [x0 + dx, dy, 0.0], [x0 + dx + 0.04, dy + 0.04, 0.85], 120))
     return np.concatenate(parts)
 
-
-def _chair_at(rng, x0, y0):
-    """A chair: seat 0.45–0.5 high on four legs, its back plate (x0 − 0.05 … x0) rising to 1.3."""
-    parts = [_box(rng, [x0 - 0.5, y0, 0.45], [x0 - 0.05, y0 + 0.5, 0.5], 700),
-             _box(rng, [x0 - 0.05, y0, 0.45], [x0, y0 + 0.5, 1.3], 800)]
-    for dx in (-0.5, -0.1):
-        for dy in (0.0, 0.46):
-            parts.append(_box(rng, [x0 + dx, y0 + dy, 0.0], [x0 + dx + 0.04, y0 + dy + 0.04, 0.45], 70))
-    return np.concatenate(parts)
-
-
-def _chair_tucked_under_a_table():
-    """A chair whose back touches the edge of a table top and rises 0.4 above it, everything one wood colour,
-    beside two more tables and two more chairs standing alone on the floor z = 0; the first chair and table are
-    one cluster, every other copy its own. Returns means, truth (1 the chair, 2 its table), colours, opacities,
-    the clustering and one click per copy."""
-    from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
+def test_plane_through_a_colonnade_is_not_a_support():
+    """Five square posts under a beam on a floor: the floor has nothing under it, a plane through the posts
+    has the colonnade on both sides. Only the floor is removed; without the one-side test planes through
+    the posts are removed too, and with them part of every post."""
+    from splatreplace_ns.masks.clustering import neighbourhood_spacing, remove_planes, two_sidedness
 
     rng = np.random.default_rng(0)
-    parts = [_chair_at(rng, -0.5, 0.0), _table_at(rng, 0.0), _table_at(rng, 3.0), _table_at(rng, 6.0),
-             _chair_at(rng, 3.0, 2.0), _chair_at(rng, 6.0, 2.0)]
-    means = np.concatenate(parts)
-    truth = np.repeat(np.arange(1, 7), [len(p) for p in parts])
-    colours = np.clip(np.full((len(means), 3), [0.55, 0.4, 0.25]) + rng.normal(0, 0.02, (len(means), 3)), 0, 1)
-    clustering = Clustering(np.maximum(truth - 2, 0), float(np.median(kth_neighbour_distances(means, 8))),
-                            [np.array([0.0, 0.0, 1.0, 0.0])])
-    at = [(-0.8, 0.25, 0.48), (0.0, 0.25, 0.88), (3.0, 0.25, 0.88), (6.0, 0.25, 0.88), (2.8, 2.25, 0.48), (5.8, 2.25, 0.48)]
-    classes = ["chair", "table", "table", "table", "chair", "chair"]
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), c, torch.tensor(p, dtype=torch.float64), f"click {k}")
-              for k, (p, c) in enumerate(zip(at, classes))]
-    return means, truth, colours, np.ones(len(means)), clustering, clicks
 
+    def box(lo, hi, n, bottom=False):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        size = hi - lo
+        areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
+        face = rng.choice(3, n, p=areas / areas.sum())
+        pts = rng.uniform(lo, hi, (n, 3))
+        high = rng.integers(0, 2, n).astype(bool)
+        if not bottom:
+            high[face == 2] = True  # a post's foot stands on the floor: no Gaussian there
+        pts[np.arange(n), face] = np.where(high, hi[face], lo[face])
+        return pts
 
-def test_a_chair_back_rising_above_the_table_it_touches_is_the_chairs():
-    """A chair whose back touches the edge of a table top and rises 0.4 above it, everything one wood colour,
-    beside two more tables and two more chairs standing alone. The walk gives the back's upper part to the
-    table (its contact with the top is as wide as the back, and nearer than the seat). Copies stand on the floor,
-    so a table's points end at the tables' top height: with ``split_height_margin`` the part above it goes to
-    the chair; off (0), it stays the table's."""
-    means, truth, colours, opacities, clustering, clicks = _chair_tucked_under_a_table()
-    upper_back = (truth == 1) & (means[:, 2] > 0.95)
-    off = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_margin=0.0))
-    on = instance_ids(clicks, means, opacities, colours, clustering,
-                      ClusteringConfig(split_height_margin=0.5, split_height_reseed=0.0))
-    assert (off[upper_back] == 2).all()
-    assert (on[upper_back] == 1).mean() > 0.9
-    assert (on == truth).mean() > (off == truth).mean() + 0.02
-    assert (on[truth == 2] == 2).mean() >= (off[truth == 2] == 2).mean()  # the table loses nothing of its own
-
-
-def test_what_lies_under_the_floor_or_on_it_away_from_the_feet_goes_to_the_background():
-    """A table labelled with floaters from under the floor, a patch of floor beside a leg and one under its
-    top (all within ``floor_band`` spacings above the floor): those go, its legs' feet and the top stay. With
-    both parts off nothing changes."""
-    from splatreplace_ns.masks.clustering import cut_off_the_floor
-
-    rng = np.random.default_rng(1)
-    spacing = 0.02
-    table = _table_at(rng, 0.0)
-    under = _box(rng, [-0.3, 0.1, -0.3], [0.3, 0.4, -0.1], 150)  # more than 2 spacings under the floor
-    beside = _box(rng, [-0.8, 0.0, 0.0], [-0.6, 0.5, 0.03], 150)  # 0.15 from the nearest leg
-    below_top = _box(rng, [-0.2, 0.1, 0.0], [0.2, 0.4, 0.03], 150)  # under the top, far from every leg
-    means = np.concatenate([table, under, beside, below_top])
-    ids = np.ones(len(means), dtype=np.int64)
-    floor = np.array([0.0, 0.0, 1.0, 0.0])
-    out = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0)
-    assert (out[: len(table)] == 1).all()  # feet (the lowest 0.04 of each leg) included
-    assert (out[len(table):] == 0).all()
-    assert (cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=0.0, reach=2.0, support=3.0) == ids).all()
-    only_under = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=0.0, reach=2.0, support=3.0)
-    assert (only_under[len(table) : len(table) + 150] == 0).all() and (only_under[len(table) + 150 :] == 1).all()
-
+    floor = np.c_[rng.uniform(-4, 4, (8000, 2)), rng.normal(0, 0.002, 8000)]
+    posts = [box([x - 0.15, -0.15, 0.0], [x + 0.15, 0.15, 1.0], 1200) for x in (-2, -1, 0, 1, 2)]
+    beam = box([-2.6, -0.15, 1.0], [2.6, 0.15, 1.3], 4000, bottom=True)
+    means = np.concatenate([floor] + posts + [beam])
+    spacing = neighbourhood_spacing(means, 8)
+    threshold = ClusteringConfig().plane_distance * spacing
+    assert two_sidedness(means, np.array([0.0, 0.0, 1.0, 0.0]), threshold) == 0.0  # the floor
+    assert two_sidedness(means, np.array([0.0, 1.0, 0.0, 0.0]), threshold) > 0.45  # through the posts' axes
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig())
+    assert len(planes) == 1 and abs(planes[0][2]) > 0.99
+    assert on_plane[8000:14000].mean() < 0.01
+    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(max_two_sidedness=0.5))
+    assert len(planes) > 1 and on_plane[8000:14000].mean() > 0.02
 
 def test_the_floor_is_the_lowest_level_plane():
     """Two level planes (the floor at z = 0 and a sheet at z = 0.5) and a wall: with the points the floor is
@@ -1051,10 +704,10 @@ def test_the_floor_is_the_lowest_level_plane():
     assert floor_plane(planes[:1] + planes[2:], points=points)[3] == pytest.approx(-0.5, abs=0.01)
     assert floor_plane([planes[2]], points=points) is None
 
-
-def test_a_copy_on_a_step_has_its_bands_measured_from_the_step():
-    """The same table and patches as above, all raised by 0.4 onto a step: measured from the floor every
-    patch is too high to be cut; with the step as the table's ground (``ground``) the same ones go."""
+def test_a_copy_on_a_step_has_its_band_measured_from_the_step():
+    """A table with a patch of floor beside a leg and one under its top, all raised by 0.4 onto a step: measured
+    from the floor every patch is too high to be cut; with the step as the table's ground (``ground``) the patch
+    beside goes, the one under the top (held up by the top) stays."""
     from splatreplace_ns.masks.clustering import cut_off_the_floor
 
     rng = np.random.default_rng(1)
@@ -1065,12 +718,11 @@ def test_a_copy_on_a_step_has_its_bands_measured_from_the_step():
     means = np.concatenate([table, beside, below_top])
     ids = np.ones(len(means), dtype=np.int64)
     floor = np.array([0.0, 0.0, 1.0, 0.0])
-    from_floor = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0)
+    from_floor = cut_off_the_floor(ids, means, floor, spacing, low=2.0, reach=2.0)
     assert (from_floor == 1).all()
-    from_step = cut_off_the_floor(ids, means, floor, spacing, below=2.0, low=2.0, reach=2.0, support=3.0,
-                                  ground={1: 0.4 / spacing})
-    assert (from_step[: len(table)] == 1).all() and (from_step[len(table):] == 0).all()
-
+    from_step = cut_off_the_floor(ids, means, floor, spacing, low=2.0, reach=2.0, ground={1: 0.4 / spacing})
+    n = len(table)
+    assert (from_step[:n] == 1).all() and (from_step[n : n + 150] == 0).all() and (from_step[n + 150 :] == 1).all()
 
 def test_faint_fuzz_above_the_band_does_not_hold_up_the_fuzz_under_it():
     """A patch of floor beside the table's legs, within the band, under a faint layer of fuzz just above the
@@ -1087,195 +739,17 @@ def test_faint_fuzz_above_the_band_does_not_hold_up_the_fuzz_under_it():
     opacities = np.concatenate([np.ones(len(table) + len(patch)), np.full(len(faint), 0.2)])
     ids = np.ones(len(means), dtype=np.int64)
     floor = np.array([0.0, 0.0, 1.0, 0.0])
-    args = dict(below=2.0, low=2.0, reach=2.0, support=3.0)
+    args = dict(low=2.0, reach=2.0)
     every = cut_off_the_floor(ids, means, floor, spacing, **args)
     assert (every == 1).all()
     opaque = cut_off_the_floor(ids, means, floor, spacing, **args, holds=opacities >= 0.5)
     n = len(table)
     assert (opaque[:n] == 1).all() and (opaque[n : n + 150] == 0).all() and (opaque[n + 150 :] == 1).all()
 
-
-def test_the_rest_of_the_back_follows_its_top_when_the_cluster_is_walked_again():
-    """The scene above: the height test gives the back's top to the chair, but the part of the back below the
-    table's top stays partly the table's. Walked again with the settled top as the chair's seeds, the points
-    under it follow (``split_height_reseed``); the table keeps its top but a strip along the back."""
-    means, truth, colours, opacities, clustering, clicks = _chair_tucked_under_a_table()
-    lower_back = (truth == 1) & (means[:, 0] > -0.55) & (means[:, 2] > 0.5) & (means[:, 2] < 0.85)
-    once = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_reseed=0.0))
-    again = instance_ids(clicks, means, opacities, colours, clustering, ClusteringConfig(split_height_reseed=1.0))
-    assert (once[lower_back] == 2).mean() > 0.2
-    assert (again[lower_back] == 1).all()
-    assert (again[truth == 1] == 1).mean() > 0.97 > (once[truth == 1] == 1).mean()
-    table = truth == 2
-    assert (again[table] == 2).mean() > 0.9
-    taken = table & (again == 1)
-    assert np.abs(means[taken, 0] - (-0.5)).max() < 0.1  # only along the back
-    assert (again == truth).mean() > (once == truth).mean() + 0.01
-
-
-def test_a_copys_run_of_heights_ends_where_the_scene_runs_on_beyond_its_footprint():
-    """A post (radius 3) standing on a floor under a beam. Its run of slices starts above the floor's band and
-    ends at the beam's underside; a slice inside the beam is no copy's. A table top another copy holds (not
-    counted) around the post's middle does not end the run; counted, it does. A capital a little wider than the
-    footprint ends the run without the ring's gap, not with it."""
-    from splatreplace_ns.masks.clustering import heights_within_footprint
-
-    rng = np.random.default_rng(0)
-
-    def disc(n, radius, z0, z1):
-        angle, r = rng.uniform(0, 2 * np.pi, n), radius * np.sqrt(rng.uniform(0, 1, n))
-        return np.c_[r * np.cos(angle), r * np.sin(angle), rng.uniform(z0, z1, n)]
-
-    post = disc(4000, 3.0, 0.0, 18.0)
-    capital = disc(600, 5.0, 18.0, 20.0)
-    beam = np.c_[rng.uniform(-30, 30, 12000), rng.uniform(-4, 4, 12000), rng.uniform(20, 24, 12000)]
-    floor = np.c_[rng.uniform(-30, 30, 20000), rng.uniform(-30, 30, 20000), rng.uniform(-0.5, 0.5, 20000)]
-    top = np.c_[rng.uniform(-12, 12, 3000), rng.uniform(-12, 12, 3000), rng.uniform(9, 10, 3000)]
-    floater = np.array([[0.0, 0.0, 1e12]])  # far above: must not size anything
-    points = np.concatenate([post, capital, beam, floor, floater, top])
-    distance, height = np.linalg.norm(points[:, :2], axis=1), points[:, 2]
-    others = np.arange(len(points)) < len(points) - len(top)  # the table top is another copy's
-    run = dict(radius=4.0, slice_height=0.5, gap=2.0, ring=5.0, overflow=0.5)
-    assert heights_within_footprint(distance, height, others, start=5.0, **run) == (0.5, 20.0)
-    assert heights_within_footprint(distance, height, others, start=22.0, **run) == (22.0, 22.0)
-    counted = np.ones(len(points), dtype=bool)
-    assert heights_within_footprint(distance, height, counted, start=5.0, **run) == (0.5, 9.0)
-    assert heights_within_footprint(distance, height, others, start=5.0, **{**run, "gap": 0.0}) == (0.5, 18.0)
-
-
-def colonnade_with_wide_capitals():
-    """Five posts (shaft 0.2 wide, marble) with terracotta capitals 0.5 wide and plinths 0.36 wide, under a
-    cream beam and on a cream step running past both ends, on the floor z = 0: one cluster, a click at each
-    post's middle. Returns means, truth (post k → k + 1, 0 elsewhere), colours, opacities, the clustering and
-    the clicks."""
-    from splatreplace_ns.masks.clustering import Clustering, kth_neighbour_distances
-    from splatreplace_ns.masks.lifting import LiftedClick
-
-    rng = np.random.default_rng(0)
-
-    def block(lo, hi, density):
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        return rng.uniform(lo, hi, (int(density * np.prod(hi - lo)), 3))
-
-    marble, terracotta, cream = [0.85, 0.83, 0.78], [0.75, 0.45, 0.3], [0.8, 0.78, 0.72]
-    xs = np.arange(5) - 2.0
-    parts, truth, colours = [], [], []
-    for k, x in enumerate(xs):
-        for lo, hi, colour in (([x - 0.1, -0.1, 0.15], [x + 0.1, 0.1, 0.92], marble),
-                               ([x - 0.25, -0.25, 0.92], [x + 0.25, 0.25, 1.0], terracotta),
-                               ([x - 0.18, -0.18, 0.1], [x + 0.18, 0.18, 0.15], terracotta)):
-            part = block(lo, hi, 40000)
-            parts.append(part), truth.append(np.full(len(part), k + 1)), colours.append(np.tile(colour, (len(part), 1)))
-    for lo, hi in (([-2.6, -0.3, 1.0], [2.6, 0.3, 1.3]), ([-2.6, -0.4, 0.0], [2.6, 0.4, 0.1])):
-        part = block(lo, hi, 20000)
-        parts.append(part), truth.append(np.zeros(len(part), dtype=np.int64)), colours.append(np.tile(cream, (len(part), 1)))
-    means = np.concatenate(parts)
-    colours = np.clip(np.concatenate(colours) + rng.normal(0, 0.02, means.shape), 0, 1)
-    clustering = Clustering(np.zeros(len(means), dtype=np.int64), float(np.median(kth_neighbour_distances(means, 8))),
-                            [np.array([0.0, 0.0, 1.0, 0.0])])
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.1, 0.55], dtype=torch.float64), f"click {k}")
-              for k, x in enumerate(xs)]
-    return means, np.concatenate(truth), colours, np.ones(len(means)), clustering, clicks
-
-
-def test_capitals_a_split_leaves_undecided_join_the_copy_whose_footprint_holds_them():
-    """The colonnade above: the walk reaches each capital from the neighbours through the beam as well and
-    leaves most of it undecided. With ``footprint_margin`` the part of each capital within its post's footprint
-    joins the post (every post's IoU up by 0.04 or more) while the beam and the step stay the background's;
-    off (0), the capitals stay lost."""
-    means, truth, colours, opacities, clustering, clicks = colonnade_with_wide_capitals()
-    capitals = (truth > 0) & (means[:, 2] >= 0.92)
-
-    def scores(cfg):
-        ids = instance_ids(clicks, means, opacities, colours, clustering, cfg)
-        ious = np.array([((ids == k) & (truth == k)).sum() / ((ids == k) | (truth == k)).sum() for k in range(1, 6)])
-        return ious, (ids[capitals] == truth[capitals]).mean(), (ids[truth == 0] > 0).mean()
-
-    on, capitals_on, taken_on = scores(ClusteringConfig())
-    off, capitals_off, taken_off = scores(ClusteringConfig(footprint_margin=0.0))
-    assert (on > off + 0.04).all(), (on, off)
-    assert capitals_on > capitals_off + 0.1, (capitals_on, capitals_off)
-    assert taken_on <= taken_off + 0.002, (taken_on, taken_off)
-
-
-def test_an_end_copys_strip_of_the_beam_goes_and_what_another_copy_holds_does_not_cut():
-    """Four posts (1 tall, radius 0.1) on the floor under a beam; the first post also holds the strip of the
-    beam above it and beside it, as an end column of a row does. With ``footprint_cut_above`` the strip goes
-    to the background and every post stays whole, the third one too, though it rises through a slab that
-    another click's copy (a table top of another class) holds; off, the strip stays. What a split left
-    undecided of the third post above that slab joins it: the slab is another copy's, so the post's run goes
-    on through it. A level sheet of another cluster through all four posts (a chess board's sheet at its
-    pieces' top height) does not end their runs."""
-    from splatreplace_ns.masks.clustering import claim_within_footprint
-    from splatreplace_ns.masks.lifting import LiftedClick
-
-    rng = np.random.default_rng(0)
-
-    def disc(n, x, radius, z0, z1):
-        angle, r = rng.uniform(0, 2 * np.pi, n), radius * np.sqrt(rng.uniform(0, 1, n))
-        return np.c_[x + r * np.cos(angle), r * np.sin(angle), rng.uniform(z0, z1, n)]
-
-    xs = (0.0, 1.0, 2.0, 3.0)
-    posts = [disc(1500, x, 0.1, 0.0, 1.0) for x in xs]
-    beam = np.c_[rng.uniform(-0.5, 3.5, 6000), rng.uniform(-0.15, 0.15, 6000), rng.uniform(1.0, 1.15, 6000)]
-    slab = np.c_[rng.uniform(1.6, 2.4, 2000), rng.uniform(-0.4, 0.4, 2000), rng.uniform(0.6, 0.63, 2000)]
-    sheet = np.c_[rng.uniform(-0.5, 3.5, 8000), rng.uniform(-0.5, 0.5, 8000), rng.uniform(0.9, 0.91, 8000)]
-    means = np.concatenate(posts + [beam, slab, sheet])
-    ids = np.concatenate([np.full(1500, k + 1) for k in range(4)]
-                         + [np.zeros(6000, dtype=np.int64), np.full(2000, 5), np.zeros(8000, dtype=np.int64)])
-    strip = 6000 + np.flatnonzero(np.abs(beam[:, 0]) < 0.4)
-    ids[strip] = 1
-    clicks = [LiftedClick(k, 0, (0.0, 0.0), "post", torch.tensor([x, 0.1, 0.5], dtype=torch.float64), f"click {k}")
-              for k, x in enumerate(xs)]
-    clicks.append(LiftedClick(4, 0, (0.0, 0.0), "table", torch.tensor([2.0, 0.3, 0.62], dtype=torch.float64), "click 4"))
-    floor = np.array([0.0, 0.0, 1.0, 0.0])
-    undecided = np.zeros(len(means), dtype=bool)
-    upper = 3000 + np.flatnonzero(means[3000:4500, 2] > 0.8)  # the third post's top, left undecided
-    undecided[upper] = True
-    ids[upper] = 0
-    spacing = 0.02
-    labels = np.where(np.arange(len(means)) < len(means) - len(sheet), 0, 1)  # the sheet: another cluster
-    clusters = (labels, [0] * 5)
-    out = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, *clusters, floor, spacing,
-                                 ClusteringConfig())
-    assert (out[strip] == 0).all()
-    assert all((out[k * 1500 : (k + 1) * 1500] == k + 1).all() for k in range(4))
-    assert (out[6000 + 6000 : 6000 + 8000] == 5).all()
-    # counted as the copies' own cluster, the sheet through all four posts would end their runs
-    one = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, np.zeros_like(labels), [0] * 5,
-                                 floor, spacing, ClusteringConfig())
-    assert (one[:6000][means[:6000, 2] > 0.92] == 0).all()
-    off = claim_within_footprint(ids, means, np.ones(len(means)), undecided, clicks, *clusters, floor, spacing,
-                                 ClusteringConfig(footprint_cut_above=False))
-    assert (off[strip] == 1).all() and (off[upper] == 3).all()
-
-
-def test_pieces_the_cuts_left_apart_from_an_instance_go_to_the_background():
-    """A table whose cluster also held two patches of floor fuzz, linked to a leg's foot only through the band
-    the floor cut removed: the patches, 5 spacings from the foot, go; the table stays whole, and a second
-    instance far away is untouched. With ``min_fraction`` a piece at least that fraction of the largest stays."""
-    from splatreplace_ns.masks.clustering import keep_the_largest_piece, kth_neighbour_distances
-
-    rng = np.random.default_rng(2)
-    table = _table_at(rng, 0.0)
-    spacing = float(np.median(kth_neighbour_distances(table, 8)))
-    patches = [_box(rng, [-0.45 - 7 * spacing, 0.0, 0.02], [-0.45 - 5 * spacing, 0.04, 0.04], 30),
-               _box(rng, [0.45 + 9 * spacing, 0.46, 0.02], [0.45 + 11 * spacing, 0.5, 0.04], 30)]
-    other = _table_at(rng, 3.0)
-    means = np.concatenate([table] + patches + [other])
-    ids = np.concatenate([np.full(len(table) + 60, 1), np.full(len(other), 2)])
-    out = keep_the_largest_piece(ids, means, 2 * spacing)
-    assert (out[: len(table)] == 1).all() and (out[len(table) : len(table) + 60] == 0).all()
-    assert (out[len(table) + 60 :] == 2).all()
-    kept = keep_the_largest_piece(ids, means, 2 * spacing, min_fraction=0.005)
-    assert (kept == ids).all()
-
-
 def test_what_lies_low_beside_an_object_and_not_under_it_goes_to_the_background():
     """A table labelled with two patches of fuzz 3 spacings above the floor (above the first band): one beside
-    a leg, outside the top, the other under the top. With no top to the holding band (``support`` infinite,
-    ``low`` 4) the patch beside goes, the one under the top and the whole table stay; with the first band's
-    holding band (2 to 6 spacings) neither goes."""
+    a leg, outside the top, the other under the top. With a band 4 spacings high the patch beside goes, the one
+    under the top and the whole table stay."""
     from splatreplace_ns.masks.clustering import cut_off_the_floor
 
     rng = np.random.default_rng(3)
@@ -1287,11 +761,8 @@ def test_what_lies_low_beside_an_object_and_not_under_it_goes_to_the_background(
     ids = np.ones(len(means), dtype=np.int64)
     floor = np.array([0.0, 0.0, 1.0, 0.0])
     n = len(table)
-    low = cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=4.0, reach=2.0, support=np.inf)
+    low = cut_off_the_floor(ids, means, floor, spacing, low=4.0, reach=2.0)
     assert (low[:n] == 1).all() and (low[n : n + 80] == 0).all() and (low[n + 80 :] == 1).all()
-    first = cut_off_the_floor(ids, means, floor, spacing, below=0.0, low=2.0, reach=2.0, support=3.0)
-    assert (first == 1).all()
-
 
 def test_masks_base_trains_on_every_frame_unless_the_capture_lists_a_split(tmp_path):
     from splatreplace_ns.masks.base import trains_on_every_frame
@@ -1305,45 +776,6 @@ def test_masks_base_trains_on_every_frame_unless_the_capture_lists_a_split(tmp_p
     assert trains_on_every_frame(listed, "every") and not trains_on_every_frame(own, "split")
     with pytest.raises(ValueError, match="auto, every or split"):
         trains_on_every_frame(own, "all")
-
-
-def colonnade_flush_with_its_beam(seed: int = 0):
-    """Five round columns (radius 0.07) whose fronts are flush with the front face (y = 0) of the beam they
-    carry, every side seen; returns the points and how many belong to the beam."""
-    rng = np.random.default_rng(seed)
-    beam = []
-    for axis, value, n in ((1, 0.0, 6000), (1, 0.3, 6000), (2, 1.0, 4000), (2, 1.3, 4000)):
-        p = rng.uniform([-2.6, 0.0, 1.0], [2.6, 0.3, 1.3], (n, 3))
-        p[:, axis] = value
-        beam.append(p)
-    beam = np.concatenate(beam)
-    columns = []
-    for x in (-2.0, -1.0, 0.0, 1.0, 2.0):
-        a, z = rng.uniform(0, 2 * np.pi, 1500), rng.uniform(0.0, 1.0, 1500)
-        columns.append(np.c_[x + 0.07 * np.cos(a), 0.07 + 0.07 * np.sin(a), z])
-    return np.concatenate([beam] + columns), len(beam)
-
-
-def test_a_wall_keeps_its_wide_parts_and_gives_back_the_columns_flush_with_it():
-    """The beam's front face is a wall to remove; the strips where the columns touch its plane are linked to
-    its sheet but a few spacings wide: the opening leaves them to the columns, and the face itself stays."""
-    from splatreplace_ns.masks.clustering import neighbourhood_spacing, remove_planes, wide_parts
-
-    means, n_beam = colonnade_flush_with_its_beam()
-    spacing = neighbourhood_spacing(means, 8)
-    front = np.flatnonzero(np.abs(means[:n_beam, 1]) < 1e-9)
-    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(wall_min_width=0))
-    assert any(abs(p[1]) > 0.99 for p in planes) and on_plane[n_beam:].mean() > 0.15
-    on_plane, planes = remove_planes(means, spacing, ClusteringConfig(wall_min_width=8))
-    assert any(abs(p[1]) > 0.99 for p in planes)
-    assert on_plane[n_beam:].mean() < 0.06 and on_plane[front].mean() > 0.9
-    # the opening alone: a 40 × 10 sheet keeps its inside, loses a strip 2 cells wide hanging from it
-    grid = np.stack(np.meshgrid(np.arange(40.0), np.arange(10.0, 20.0)), -1).reshape(-1, 2)
-    strip = np.stack(np.meshgrid(np.arange(19.0, 21.0), np.arange(0.0, 10.0)), -1).reshape(-1, 2)
-    sheet = np.concatenate([grid, strip])
-    points = np.c_[sheet[:, 0], np.zeros(len(sheet)), sheet[:, 1]]
-    keep = wide_parts(points, np.array([0.0, 1.0, 0.0, 0.0]), 1.0, 4.0)
-    assert keep[: len(grid)].mean() > 0.95 and keep[len(grid):].mean() < 0.2
 
 
 def test_a_click_on_a_silhouette_lands_on_the_object_in_front():

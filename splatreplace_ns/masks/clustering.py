@@ -40,19 +40,6 @@ class ClusteringConfig:
     min_plane_extent: float = 0.3
     """A supporting plane's sheet spans at least this fraction of the scene's diagonal (floors and walls
     do; the coplanar faces of a few objects do not)."""
-    dense_spacing: float = 2.0
-    """The scene's diagonal is that of its dense part: the solid Gaussians whose ``cluster_min_points``-th
-    neighbour lies within this many spacings. An outdoor capture's sky and floaters are sparse and spread
-    far; counted, they made every floor "too small" to be one (temple: a diagonal four times the
-    colonnade's). 0 counts every solid Gaussian."""
-    wall_min_width: float = 5.0
-    """A wall's sheet (a plane more than 30° from level) keeps only its parts at least this many of its
-    spacings wide: a morphological opening of the sheet drawn on a grid in its plane, with a disc this many
-    cells across (rounded up to an odd number). The fronts of round columns under a beam flush with them lie in
-    the beam face's plane, in strips two or three spacings wide linked to its sheet, and went with it (temple
-    with its base trained on every frame, `bench masks --base-frames every`: masks mIoU 0.06; 3: 0.22, 5: 0.73,
-    7: 0.72, 9: 0.73). Level planes keep every part: a floor's narrow strips between chair legs are floor.
-    0: off."""
     max_two_sidedness: float = 0.35
     """A wall has the scene on one side: of the solid Gaussians just off it (between ``plane_distance`` and
     ten times that), at most this fraction may lie on its less crowded side; a plane through a row of columns
@@ -94,41 +81,8 @@ class ClusteringConfig:
     to its click. With two clicks in a cluster every point has one at 0.5 or more, so a chair against a
     table splits as before (temple masks mIoU 0.35 → 0.44 over its seven lifted clicks, office unchanged;
     `bench masks`). 0 gives every point to a click."""
-    split_structure_perplexity: float = 3.0
-    """``random_walk``: a point that the walk shares among more than this many clicks (the perplexity, exp of
-    the entropy, of its click probabilities) lies on structure that several copies share, such as the beam
-    over a colonnade or the steps under it, and goes to the background even when one click has more than
-    ``split_min_probability`` of it (that click's strip of the beam). A boundary between two touching objects
-    is shared by two. Masks mIoU temple / office / chess (`bench masks`, same base models, keep radius 2,
-    seeds of the ball alone):
-    off: 0.610 / 0.820 / 0.831; 2.5: 0.651 / 0.821; 3: 0.691 / 0.822 / 0.831; 3.5: 0.676 / 0.822. 0 turns
-    it off (and with it ``split_keep_radius``)."""
-    split_keep_radius: float = 2.0
-    """``random_walk``: points left to the background by the split (shared by several clicks, or won with less
-    than ``split_min_probability``) within this many spacings of a click's own points join the nearest one
-    (:func:`keep_borders`): where a column meets the beam and the steps, its capital and plinth are reached
-    from its neighbours through that structure as well. Masks mIoU temple (perplexity 3): 1.5: 0.673; 2: 0.691;
-    3: 0.650 (the beam comes back). 0 keeps none."""
     split_seed_radius: float = 2.0
     """``random_walk``: the seed of a click is every point within this many spacings of it."""
-    split_seed_min_fraction: float = 0.5
-    """``random_walk``: a seed whose ball holds fewer points than this fraction of the median ball of the
-    cluster's clicks is that many of the click's nearest points instead. A click where the model is sparse
-    (the edge of a shaft) had a seed of 25–36 points against 200–240 for its neighbours' clicks, and its walk
-    shared its own shaft with the others. Masks mIoU temple at 320×240 (`bench masks`, 200 views, same base
-    model, ball counts 25–243, median 208): 0: 0.639 (that column 0.47); 0.3: 0.660; 0.5: 0.672 (0.85);
-    0.8: 0.678. At 160×120 temple / office / chess: 0 and 0.5: 0.691 / 0.822 / 0.831; 0.8: 0.671 (end
-    column 1 0.22 → 0.08) / 0.823 / 0.831. 0 keeps the balls as they are."""
-    split_reach_mass: float = 0.5
-    """``random_walk``: points from which the colour-weighted walk reaches its seeds (all labels together) with
-    less than this probability take their probabilities from a second walk on the same points without colour
-    weights (:func:`rewalk_weakly_reached`); the class colour prior then decides between classes. The rest of
-    such a point's walk leaks away: a chair back's own checkered texture makes edges weaker than the walk's
-    leak, and which seed got the last millionths was chance (office: chair 7's back went to the table). Masks
-    mIoU office / temple / chess (`bench masks`, same base models): 0: 0.822 / 0.691 / 0.831; 0.1 or 0.5: 0.852 /
-    0.691 / 0.831 (chair 7 0.46 → 0.72, table 2 0.56 → 0.66); the same with the second walk for every point of
-    multi-class clusters instead (edges by class colour, weights 0–5: 0.850), but it broke chess's rooks (0.30).
-    At 320×240 office / temple unchanged (0.938 / 0.672). 0 turns it off."""
     split_neighbours: int = 16
     """kNN graph degree when a cluster holding several clicks is split between them."""
     split_colour_weight: float = 20.0
@@ -155,129 +109,23 @@ class ClusteringConfig:
     """Length factor of the walk's edges onto the background seed: an object rests on its support, so a step
     onto the plane counts as a longer one (chess, without the colour prior: 0.699 / 0.727 / 0.740 with
     3 / 6 / 10; fuzz two spacings above the floor is then cut off the floor as well, see the unit test)."""
-    split_colour_prior: float = 2.0
-    """Exponent of the colour prior in a split: each point's walk probabilities are multiplied by
-    p(colour | class)^this of each click's class and renormalised. Each class has one colour histogram, made
-    from the points every walk in the scene gives an instance of it almost surely (and from whole one-click
-    clusters): copies share their colours, so the prior decides between a chair and the table it touches and
-    leaves the choice between two chairs to the walk. Masks mIoU office / temple / chess (`bench masks`, same
-    base models): 0: 0.772 / 0.610 / 0.676; 1: 0.809 / 0.610 / 0.679; 2: 0.818 / 0.610 / 0.679; 3: 0.822 /
-    0.610 / 0.678 (temple's clicks are all of one class, where the prior cancels). 0 turns it off."""
-    split_height_margin: float = 0.5
-    """Copies stand on the floor, so their height above it does not depend on their turn. In a cluster
-    holding several clicks, a point higher than a click's class top (the median over the class's instances
-    of the 98th percentile of their surely own points' heights) by more than this many spacings gets no
-    probability for that click: a chair's back rising above the table it is tucked under cannot be the
-    table's. Masks mIoU office (`bench masks`, same base models): 0: 0.852 (chair 7 0.72, table 2 0.66); 0.5:
-    0.862 (0.80, 0.70); 1: 0.860; 2: 0.855. Temple and chess unchanged. 0 turns it off (and captures without a
-    floor skip it)."""
-    split_height_reseed: float = 1.0
-    """The points that the height test of ``split_height_margin`` moved to another click become that click's
-    seeds and the cluster is walked again; the new walk's answer is taken for the points within this many
-    spacings, across the floor, under a settled point of the click it names (what holds them up: the rest of
-    office's chair 7's back, whose top alone the height test gave to the chair). Masks mIoU office / temple /
-    chess (`bench masks`, same base models): 0: 0.880 / 0.705 / 0.830 (chair 7 0.80, table 2 0.82); 1 or 2:
-    0.891 / 0.705 / 0.830 (0.88, 0.88); at 320×240 office 0.940 and temple 0.677 either way. The new walk's
-    answer everywhere: office 0.883 against 0.873 without it (before ``floor_support_opacity``), and in a scene
-    of one colour (unit test) it took a strip of the table top the back touches. 0 turns it off."""
-    footprint_margin: float = 0.5
-    """What a split leaves undecided goes to the one click whose copy's footprint holds it, at the heights where
-    that copy's slices of the scene stay within the footprint (:func:`claim_within_footprint`): a temple
-    column's capital lies between its shaft and the beam that runs on to the next columns, so the walk reaches
-    it from the neighbours as well and left it to the background. The footprint is a disc about the copy's
-    axis across the floor, of the class's radius (the median over its copies of the 98th percentile of their
-    solid Gaussians' distances from their axes) plus this many spacings. Masks mIoU temple at 160×120 /
-    320×240 (`bench masks`, same base models; office and chess unchanged in every row, 0.891 / 0.940 and
-    0.830): off (0): 0.705 / 0.677; margin 1 with the rings' ``gap`` 0 and ``ring`` 3: 0.732 / 0.703 (the
-    middle columns 0.85–0.89 → 0.92–0.93 at 320×240); margin 0.5: 0.734 / 0.717; margin 2: 0.715 / 0.693;
-    margin 0.5, gap 2, ring 3: 0.736 / 0.706; margin 0.5, gap 2, ring 5: 0.728 / 0.721 (the end columns of
-    the row 0.84 / 0.88 → 0.90 / 0.92 at 320×240). 0 turns it off."""
-    footprint_gap: float = 2.0
-    """The ring in which :func:`heights_within_footprint` looks for what runs on beyond a footprint starts this
-    many spacings outside it: a capital a little wider than the footprint its copy's decided points give does
-    not overflow its own slice (unit test; temple 0.734 / 0.717 with 0, 0.736 / 0.706 with 2 and 3, ring 3)."""
-    footprint_ring: float = 5.0
-    """Width of that ring, in spacings (temple 0.736 / 0.706 with 3, 0.728 / 0.721 with 5, gap 2)."""
-    footprint_overflow: float = 0.5
-    """A slice of the scene at one height is the copy's while the solid Gaussians in the ring number at most
-    this fraction of those within its footprint; where a beam, a step or the floor begins, the slice runs on
-    beyond it (temple with margin 1, gap 0, ring 3: 0.3: 0.723 / 0.721; 0.5: 0.732 / 0.703; 0.8: 0.725 /
-    0.701)."""
-    footprint_slice: float = 0.5
-    """Height of those slices, in spacings (1: temple 0.725 / 0.701 against 0.732 / 0.703, margin 1, gap 0,
-    ring 3)."""
-    footprint_cut_above: bool = True
-    """A copy's points above the end of its run of slices within its footprint, and above the median end over
-    its class, go to the background: the strip of the beam that an end column of the row holds. Temple, margin
-    1, gap 0, ring 3: off: 0.722 / 0.696; on: 0.732 / 0.703; cutting only half a spacing or one spacing
-    higher: 0.726 / 0.699, 0.723 / 0.697."""
     colour_model_probability: float = 0.9
     """Points a walk gives one click with at least this probability make that click's class colour model."""
     colour_bins: int = 8
     """Colour histogram bins per RGB channel."""
-    class_size_cut: float = 1.0
-    """An instance's Gaussians farther from its click than this many times its class's size (the median
-    diagonal of the class's instances; the smaller of two) go to the background (:func:`cut_beyond_class_size`).
-    Masks mIoU office / temple / chess (`bench masks`, same base models): 0: 0.820 / 0.610 / 0.748; 0.8, 1.0
-    or 1.2 with the median over three or more instances only: 0.820 / 0.610 / 0.791 (pawn 1 0.18 → 0.78);
-    1.0 with two-instance classes too: 0.820 / 0.610 / 0.831 (rook 10 0.30 → 0.86). 0 turns it off."""
-    class_size_across_floor: bool = True
-    """Make the size test of ``class_size_cut`` also on the points projected onto the floor (the removed plane
-    nearest to +z, within 30°): a strip of a beam above a column lies within the column's height from its click
-    but not within its width. Masks mIoU temple / office / chess (`bench masks`, same base models): off: 0.691 /
-    0.852 / 0.831; on: 0.695 / 0.852 / 0.831 (column 8 0.75 → 0.79); at 320×240 temple 0.672 → 0.678, office
-    0.938 either way."""
-    below_floor: float = 2.0
-    """An instance's Gaussians more than this many spacings under the floor (the lowest removed plane within
-    30° of +z) go to the background (:func:`cut_off_the_floor`): office's table 2 held 1 295 floaters from under
-    a thinly reconstructed floor. Masks mIoU office / temple / chess (`bench masks`, same base models, without
-    the two settings below): 0: 0.852 / 0.695 / 0.831; 2 or 3: 0.856 / 0.695 / 0.831 (chess 0.424 with 2 when
-    its floor was the plane nearest +z: a second level sheet at its pieces' tops). 0 turns it off."""
-    floor_band: float = 2.0
-    """An instance's Gaussians within this many spacings above the floor go to the background when they lie
-    farther across the floor than ``floor_reach`` spacings from its Gaussians between ``floor_band`` and
-    ``floor_support × floor_band`` spacings high (:func:`cut_off_the_floor`): parquet beside a table's legs and
-    under its top. Masks mIoU office at 160×120 / at 320×240 (`bench masks`, same base models, with
-    ``below_floor`` 2 and ``split_height_margin`` 0.5): 0: 0.866 / –; 2 (reach 2, support 3): 0.873 / 0.940;
-    2.5 (reach 1.5): 0.876 / 0.935; 3 (reach 1, support 2): 0.884 / 0.930 (tables 0.94 / 0.84 / 0.93 at
-    160×120, but chairs under the tables lose their feet at 320×240). Chess: within 0.001 of 0.
-    A class whose copies' lowest points (the median over them of the 2nd percentile of their surely own points'
-    heights) lie above this band stands on a step or a platform, and its band starts there: temple's columns
-    on the top step, 0.695 → 0.704 (column 8 0.79 → 0.82), 0.678 at 320×240 either way. 0 turns it off."""
-    floor_reach: float = 2.0
-    """See ``floor_band``."""
-    floor_support: float = 3.0
-    """See ``floor_band``."""
-    floor_support_opacity: float = 0.5
-    """Only Gaussians at least this opaque hold a foot up in ``floor_band``'s test: the floor's faint fuzz
-    reaching 2–2.5 spacings high held up the fuzz under it beside office's tables. Masks mIoU office / temple /
-    chess at 160×120, office / temple at 320×240 (`bench masks`, same base models): 0: 0.873 / 0.704 / 0.830,
-    0.940 / 0.678; 0.3: 0.875 / 0.705 / 0.830; 0.5: 0.880 / 0.705 / 0.830, 0.940 / 0.677; 0.7: 0.883 / 0.705 /
-    0.830, 0.942 / 0.675; 0.9: 0.884 / 0.702 / 0.830 (chair 5 0.86 → 0.84)."""
-    one_piece_radius: float = 2.0
-    """After the cuts, an instance's points linked (within this many spacings, single linkage) neither to its
-    largest piece nor to one at least ``piece_min_fraction`` of its size go to the background
-    (:func:`keep_the_largest_piece`): patches of the floor's fuzz that a table held through the band the floor
-    rules removed. Masks mIoU office / temple at 160×120, office / temple at 320×240, chess (`bench masks`, same
-    base models): 0 (off): 0.891 / 0.728, 0.940 / 0.721, 0.830; 2: 0.895 / 0.728, 0.943 / 0.721, 0.830 (tables 1
-    and 3 0.91 → 0.94 and 0.90 → 0.92 at 160×120); 3: 0.892, 0.941; 1.5: 0.896 / 0.728, 0.943 / 0.724; 1 (with
-    fraction 0.2): 0.883 / 0.726, 0.876 / 0.721, chairs falling apart (0.66, 0.65). 0 turns it off."""
-    piece_min_fraction: float = 0.2
-    """See ``one_piece_radius`` (1, the largest piece alone: the same scores at 2 spacings)."""
     floor_under_band: float = 4.0
-    """Everything low of an object lies under the object: an instance's Gaussians within this many spacings above
-    the floor (or its class's ground) go to the background when they lie farther across the floor than
-    ``floor_reach`` spacings from every one of its opaque Gaussians higher than this (:func:`cut_off_the_floor`
-    with no top to the band that holds them up). A table held a blob of the floor's fuzz up to 4 spacings high
-    beside a leg, outside its top. Masks mIoU office / temple / chess at 160×120, office / temple at 320×240
-    (`bench masks`, same base models, with ``one_piece_radius`` 2): 0: 0.895 / 0.728 / 0.830, 0.943 / 0.721; 3:
-    0.898, 0.943; 4: 0.899 (tables 0.95 / 0.89 / 0.94), 0.944; 4 with reach 3: 0.898, 0.944; 6: 0.895 (chair 5
-    0.86 → 0.82) / 0.728 / 0.827, 0.944. Temple unchanged in every row. 0 turns it off."""
+    """An instance's Gaussians within this many spacings above its ground go to the background when they lie
+    farther across the floor than ``floor_reach`` spacings from every opaque one of it higher up
+    (:func:`cut_off_the_floor`; `bench mask-passes`). 0 turns it off."""
+    floor_reach: float = 2.0
+    """See ``floor_under_band``."""
+    floor_support_opacity: float = 0.5
+    """Only Gaussians at least this opaque hold up what lies under them in ``floor_under_band``'s test (the
+    floor's faint fuzz does not)."""
     colour_reclaim_radius: float = 1.5
     """Removed-plane Gaussians within this many spacings of an instance join it when their colour is its
-    class's (:func:`reclaim_by_colour`): an object's foot lies in the plane's inlier band. Masks mIoU office /
-    temple / chess (`bench masks`, same base models, colour prior 2): 0: 0.818 / 0.610 / 0.679; 1.5: 0.820 /
-    0.610 / 0.748 (every chess piece +0.02–0.13); 2.5: the same. 0 turns it off."""
+    class's (:func:`reclaim_by_colour`): an object's foot lies in the plane's inlier band (`bench mask-passes`).
+    0 turns it off."""
     colour_reclaim_ratio: float = 2.0
     """How much likelier the colour must be under the instance's class than under the planes' (measured with
     ``colour_reclaim_away`` 3 on the same base models as `bench masks`: 4: chess 0.834, temple with its base on
@@ -330,12 +178,10 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     return float(np.quantile(values, 0.5, weights=weights.astype(np.float64), method="inverted_cdf"))
 
 
-def neighbourhood_spacing(
-    points: np.ndarray, k: int, kth: Optional[np.ndarray] = None, weights: Optional[np.ndarray] = None
-) -> float:
-    """Median distance from each of [P, 3] points to its k-th nearest neighbour (``kth``: those distances,
-    when already known), each point counted ``weights`` [P] times when given."""
-    kth = kth_neighbour_distances(points, k) if kth is None else kth
+def neighbourhood_spacing(points: np.ndarray, k: int, weights: Optional[np.ndarray] = None) -> float:
+    """Median distance from each of [P, 3] points to its k-th nearest neighbour, each point counted ``weights``
+    [P] times when given."""
+    kth = kth_neighbour_distances(points, k)
     if len(kth) == 0:
         return 1.0
     middle = np.median(kth) if weights is None else weighted_median(kth, weights)
@@ -367,15 +213,6 @@ def robust_diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def dense_diagonal(points: np.ndarray, spacing: float, kth: np.ndarray, factor: float) -> float:
-    """:func:`robust_diagonal` of the [P, 3] points whose [P] k-th neighbour distance ``kth`` is within
-    ``factor`` × ``spacing`` (of all of them when ``factor`` is 0 or no point qualifies)."""
-    if factor <= 0 or len(kth) != len(points):
-        return robust_diagonal(points)
-    dense = kth <= factor * spacing
-    return robust_diagonal(points[dense] if dense.any() else points)
-
-
 def two_sidedness(points: np.ndarray, plane: np.ndarray, threshold: float) -> float:
     """Fraction of the [P, 3] points between ``threshold`` and 10 × ``threshold`` from the [4] plane (unit
     normal) that lie on its less crowded side; 0 when there are none."""
@@ -398,43 +235,6 @@ def largest_component(points: np.ndarray, eps: float) -> np.ndarray:
     if not (labels >= 0).any():
         return np.zeros(0, dtype=np.int64)
     return np.flatnonzero(labels == np.bincount(labels[labels >= 0]).argmax())
-
-
-MAX_GRID_CELLS = 2.0e7
-"""Largest grid :func:`wide_parts` draws a sheet on (20 MB)."""
-
-
-def wide_parts(points: np.ndarray, plane: np.ndarray, cell: float, width: float) -> np.ndarray:
-    """Which of the [P, 3] points of one plane's sheet lie in its parts at least ``width`` cells wide.
-
-    The points are drawn on a grid of ``cell`` in the [4] plane (unit normal), the grid closed by one cell
-    (a sheet's sampling leaves holes), then opened with a disc ``width`` cells across: strips narrower than
-    that vanish, a floor or a wall stays.
-
-    Returns:
-        [P] bool.
-    """
-    import cv2
-
-    if len(points) == 0:
-        return np.zeros(0, dtype=bool)
-    normal = plane[:3] / max(np.linalg.norm(plane[:3]), 1e-12)
-    basis = floor_basis(normal)
-    flat = points @ basis
-    extent = np.ptp(flat, axis=0) / cell
-    if float(np.prod(extent + 1.0)) > MAX_GRID_CELLS:  # a sheet sprawling over a large capture: coarser cells
-        factor = float(np.sqrt(np.prod(extent + 1.0) / MAX_GRID_CELLS))
-        cell, width = cell * factor, width / factor
-    cells = np.floor(flat / cell).astype(np.int64)
-    cells -= cells.min(axis=0) - 1 - int(np.ceil(width))  # a border the opening can work against
-    shape = tuple(cells.max(axis=0) + 2 + int(np.ceil(width)))
-    grid = np.zeros(shape, dtype=np.uint8)
-    grid[cells[:, 0], cells[:, 1]] = 1
-    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
-    size = int(np.ceil(width)) | 1  # odd: an even disc has no centre cell, and the opening would shift the sheet
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-    grid = cv2.morphologyEx(grid, cv2.MORPH_OPEN, disc)
-    return grid[cells[:, 0], cells[:, 1]] > 0
 
 
 def refine_plane(points: np.ndarray, plane: np.ndarray, threshold: float, max_rounds: int = 20) -> Tuple[np.ndarray, np.ndarray]:
@@ -469,9 +269,7 @@ def refine_plane(points: np.ndarray, plane: np.ndarray, threshold: float, max_ro
     return plane, inliers
 
 
-def remove_planes(
-    points: np.ndarray, spacing: float, cfg: ClusteringConfig, kth: Optional[np.ndarray] = None
-) -> Tuple[np.ndarray, List[np.ndarray]]:
+def remove_planes(points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> Tuple[np.ndarray, List[np.ndarray]]:
     """Iteratively finds the largest planes (RANSAC) and marks their inliers.
 
     Only inliers whose local normal faces the plane's way count, and only their largest connected
@@ -481,7 +279,6 @@ def remove_planes(
     Args:
         points: [P, 3] solid Gaussian centres.
         spacing: the length unit.
-        kth: [P] distance of each point to its ``cluster_min_points``-th neighbour (computed when None).
 
     Returns:
         on_plane [P] bool, the removed planes ([4] each).
@@ -490,8 +287,7 @@ def remove_planes(
 
     o3d.utility.random.seed(cfg.seed)
     normals = local_normals(points, spacing)
-    kth = kth_neighbour_distances(points, cfg.cluster_min_points) if kth is None else kth
-    scene_diagonal = dense_diagonal(points, spacing, kth, cfg.dense_spacing)
+    scene_diagonal = robust_diagonal(points)
     on_plane = np.zeros(len(points), dtype=bool)
     set_aside = np.zeros(len(points), dtype=bool)
     planes: List[np.ndarray] = []
@@ -521,8 +317,6 @@ def remove_planes(
             set_aside[inliers] = True
             continue
         wall = not is_level(unit)
-        if cfg.wall_min_width > 0 and wall:
-            sheet = sheet[wide_parts(points[sheet], plane, max(spacing, own), cfg.wall_min_width)]
         set_aside[inliers] = True  # what follows either removes the sheet or leaves it aside
         inliers = sheet
         if len(inliers) < cfg.min_plane_fraction * len(points):
@@ -587,9 +381,8 @@ def cluster_gaussians(
     if int(solid.sum()) < cfg.cluster_min_points:
         return Clustering(labels, 1.0)
     points = means[solid]
-    kth = kth_neighbour_distances(points, cfg.cluster_min_points)  # one query for the spacing and the diagonal
-    spacing = neighbourhood_spacing(points, cfg.cluster_min_points, kth, None if views is None else views[solid])
-    on_plane, planes = remove_planes(points, spacing, cfg, kth)
+    spacing = neighbourhood_spacing(points, cfg.cluster_min_points, weights=None if views is None else views[solid])
+    on_plane, planes = remove_planes(points, spacing, cfg)
     solid_labels = np.full(len(points), PLANE, dtype=np.int64)
     solid_labels[~on_plane] = cluster_points(points[~on_plane], spacing, cfg)
     solid_labels = reclaim(points, solid_labels, on_plane, spacing, cfg)
@@ -780,13 +573,11 @@ class Walk:
     graph: object
     """[P, P] kNN graph (edge lengths) the walk ran on."""
     num_clicks: int
-    spacing: float = 0.0
-    """The length unit of the cluster (0: unknown, no border is kept by :func:`keep_borders`)."""
 
 
 def random_walk(
     means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], spacing: float, cfg: ClusteringConfig,
-    background: Optional[np.ndarray] = None, settled: Optional[np.ndarray] = None,
+    background: Optional[np.ndarray] = None,
 ) -> Walk:
     """The random walker (Grady 2006) on the kNN graph of one cluster.
 
@@ -799,7 +590,6 @@ def random_walk(
         means: [P, 3] points of the cluster; colours: [P, 3] in [0, 1].
         seeds: point index of each click.
         background: [P] bool, points fixed as background (None: none).
-        settled: [P] click index of points fixed as that click's seeds besides the balls (-1: free), or None.
     """
     from scipy.sparse import diags
     from scipy.sparse.csgraph import laplacian
@@ -823,15 +613,9 @@ def random_walk(
     tree = cKDTree(means)
     balls = [np.asarray(tree.query_ball_point(means[seed], cfg.split_seed_radius * spacing), dtype=np.int64)
              for seed in seeds]
-    # a click where the model is sparse still anchors its walk: at least a fraction of the typical seed
-    fewest = int(cfg.split_seed_min_fraction * np.median([len(ball) for ball in balls])) if len(balls) else 0
     for j, (seed, near) in enumerate(zip(seeds, balls)):  # later seeds do not overwrite earlier ones
-        if len(near) < fewest:
-            near = np.atleast_1d(tree.query(means[seed], k=min(fewest, len(means)))[1]).astype(np.int64)
         marked[near[(marked[near] < 0) | (marked[near] == len(seeds))]] = j
         marked[seed] = j
-    if settled is not None:
-        marked[settled >= 0] = settled[settled >= 0]
     free = np.flatnonzero(marked < 0)
     probabilities = np.zeros((len(free), num_labels))
     if len(free):
@@ -844,55 +628,25 @@ def random_walk(
         probabilities = np.stack([
             solve(-(coupling @ (marked[fixed] == j).astype(np.float64))) for j in range(num_labels)
         ], axis=1)
-    return Walk(marked, free, probabilities, graph, len(seeds), spacing)
+    return Walk(marked, free, probabilities, graph, len(seeds))
 
 
-def rewalk_weakly_reached(
-    walk: Walk, means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], cfg: ClusteringConfig,
-    background: Optional[np.ndarray] = None, settled: Optional[np.ndarray] = None,
-) -> Walk:
-    """The walk with the probabilities of its weakly reached points (all labels together below
-    ``split_reach_mass``) taken from a walk without colour weights on the same points and seeds.
-
-    Args:
-        walk: the colour-weighted walk (:func:`random_walk`) of [P, 3] ``means`` with [P, 3] ``colours``.
-        seeds, background, settled: as given to :func:`random_walk`.
-
-    Returns:
-        a :class:`Walk` (the same one when no point is weakly reached).
-    """
-    if cfg.split_reach_mass <= 0 or not len(walk.free):
-        return walk
-    weak = walk.probabilities.sum(axis=1) < cfg.split_reach_mass
-    if not weak.any():
-        return walk
-    plain = random_walk(means, colours, seeds, walk.spacing, replace(cfg, split_colour_weight=0.0), background, settled)
-    probabilities = walk.probabilities.copy()
-    probabilities[weak] = plain.probabilities[weak]
-    return replace(walk, probabilities=probabilities)
-
-
-def walk_owners(walk: Walk, means: np.ndarray, cfg: ClusteringConfig, colour_prior: Optional[np.ndarray] = None) -> np.ndarray:
+def walk_owners(walk: Walk, means: np.ndarray, cfg: ClusteringConfig) -> np.ndarray:
     """Each point's click from a :class:`Walk`.
 
     The background (when walked) takes the points it wins with at least ``background_probability``; the
-    clicks share the rest by their probabilities renormalised without it, times ``colour_prior`` when given;
-    a point whose best click has less than ``split_min_probability``, or that more than
-    ``split_structure_perplexity`` clicks share, is :data:`SHARED` unless it lies within ``split_keep_radius``
-    of a click's own points (:func:`keep_borders`).
+    clicks share the rest by their probabilities renormalised without it; a point whose best click has less
+    than ``split_min_probability`` is :data:`SHARED`.
 
     Args:
         walk: the cluster's walk.
         means: [P, 3] its points.
-        colour_prior: [F, S] per free point and click, p(colour | the click's class) normalised over the
-            clicks and raised to ``split_colour_prior``, or None.
 
     Returns:
         [P] index into the clicks, or :data:`SHARED` (left to the background).
     """
     owner = walk.marked.copy()
     probabilities = walk.probabilities
-    won_by_background = np.zeros(len(owner), dtype=bool)
     if len(walk.free):
         # reached or not is the walk's own verdict: renormalising below would lift leak-level values
         unreached = walk.probabilities[:, : walk.num_clicks].max(axis=1) < 1e-6
@@ -900,54 +654,14 @@ def walk_owners(walk: Walk, means: np.ndarray, cfg: ClusteringConfig, colour_pri
         if probabilities.shape[1] > walk.num_clicks:
             to_background = probabilities[:, -1] >= cfg.background_probability
             probabilities = probabilities[:, :-1] / np.maximum(1.0 - probabilities[:, -1:], 1e-12)
-        if colour_prior is not None:
-            posterior = probabilities * colour_prior
-            total = posterior.sum(axis=1, keepdims=True)
-            probabilities = np.where(total > 1e-12, posterior / np.maximum(total, 1e-300), probabilities)
         best = probabilities.max(axis=1)
         owner[walk.free] = np.argmax(probabilities, axis=1)
         owner[walk.free[unreached]] = -1
         left = ~unreached & (best < cfg.split_min_probability)
-        if cfg.split_structure_perplexity > 0:
-            left |= ~unreached & (perplexity(probabilities) > cfg.split_structure_perplexity)
         owner[walk.free[left]] = SHARED
         owner[walk.free[to_background]] = SHARED
-        won_by_background[walk.free[to_background]] = True
     owner[owner == walk.num_clicks] = SHARED
-    owner = adopt_unreached(means, owner, walk.graph)
-    if cfg.split_structure_perplexity > 0 and cfg.split_keep_radius > 0 and walk.spacing > 0:
-        owner = keep_borders(means, owner, ~won_by_background, cfg.split_keep_radius * walk.spacing)
-    return owner
-
-
-def perplexity(probabilities: np.ndarray) -> np.ndarray:
-    """[F] exp of the entropy of each row of [F, S] probabilities (each summing to 1): how many labels
-    share a point about equally (1: one label, S: all of them)."""
-    p = np.clip(probabilities, 1e-12, 1.0)
-    return np.exp(-np.sum(probabilities * np.log(p), axis=1))
-
-
-def keep_borders(means: np.ndarray, owner: np.ndarray, may_join: np.ndarray, radius: float) -> np.ndarray:
-    """Gives each :data:`SHARED` point within ``radius`` of a click's own points to the nearest of them.
-
-    Args:
-        means: [P, 3]; owner: [P] click index, :data:`SHARED` or -1 (:func:`walk_owners`);
-        may_join: [P] bool, shared points that may join (not those the background's seed won).
-
-    Returns:
-        [P] owners.
-    """
-    from scipy.spatial import cKDTree
-
-    own = np.flatnonzero(owner >= 0)
-    shared = np.flatnonzero((owner == SHARED) & may_join)
-    if len(own) == 0 or len(shared) == 0:
-        return owner
-    distance, nearest = cKDTree(means[own]).query(means[shared], k=1)
-    near = distance <= radius
-    out = owner.copy()
-    out[shared[near]] = owner[own[nearest[near]]]
-    return out
+    return adopt_unreached(means, owner, walk.graph)
 
 
 def sure_points(walk: Walk, probability: float) -> np.ndarray:
@@ -1024,14 +738,11 @@ def instance_ids(
 ) -> np.ndarray:
     """Per-Gaussian instance id: click number ``i`` (0-based position in ``clicks``) → id ``i + 1``; 0 = background.
 
-    A cluster holding several clicks is split between them (:func:`random_walk` weighed by the colour model of
-    each click's class, or :func:`geodesic_split`; what the random walk leaves shared stays background), unless
-    two of its clicks are so close that they are one object clicked twice. Then what lies farther from a
-    click than its class's size goes to the background (:func:`cut_beyond_class_size`), what the splits left
-    undecided inside one copy's footprint joins it (:func:`claim_within_footprint`), what lies under the
-    floor or flat on it away from the feet goes (:func:`cut_off_the_floor`), pieces those cuts left apart from
-    an instance go (:func:`keep_the_largest_piece`), and plane Gaussians of an instance's colour next to it join
-    it (:func:`reclaim_by_colour`).
+    A cluster holding several clicks is split between them (:func:`random_walk`, or :func:`geodesic_split`; what
+    the random walk leaves shared stays background), unless two of its clicks are so close that they are one
+    object clicked twice. Then what lies low beside an instance, away from everything of it higher up, goes to
+    the background (:func:`cut_off_the_floor`), and plane Gaussians of an instance's class colour next to it
+    join it (:func:`reclaim_by_colour`).
 
     Raises:
         ClickError: from :func:`clusters_of_clicks`, or two clicks on the same spot of one cluster.
@@ -1045,17 +756,14 @@ def instance_ids(
     for position, click in enumerate(clicks):
         by_cluster.setdefault(chosen[click.index], []).append(position)
     on_plane = np.flatnonzero(clustering.labels == PLANE)
-    walks: Dict[int, Tuple[np.ndarray, int, Walk, np.ndarray]] = {}  # cluster → (walked points, own count, walk, seeds)
-    samples: Dict[str, List[np.ndarray]] = {}  # class → colours of points surely its own (for the colour prior)
+    walks: Dict[int, Tuple[np.ndarray, int, Walk]] = {}  # cluster → (walked points, own count, walk)
+    samples: Dict[str, List[np.ndarray]] = {}  # class → colours of points surely its own (its colour model)
     floor = floor_plane(clustering.planes, points=means[opacities >= cfg.min_opacity])
     height = None if floor is None else (means @ floor[:3] + floor[3]) / clustering.spacing
-    # class → top (bottom) height of the points surely each of its instances' own
-    tops: Dict[str, List[float]] = {}
-    bottoms: Dict[str, List[float]] = {}
+    bottoms: Dict[str, List[float]] = {}  # class → bottom height of the points surely each of its instances' own
 
     def note_heights(cls: str, own: np.ndarray) -> None:
         if height is not None and len(own) >= 10:
-            tops.setdefault(cls, []).append(float(np.percentile(height[own], 98)))
             bottoms.setdefault(cls, []).append(float(np.percentile(height[own], 2)))
 
     for cluster, positions in by_cluster.items():
@@ -1080,7 +788,7 @@ def instance_ids(
         _, seeds = cKDTree(means[walked]).query(points, k=1)
         walk = random_walk(means[walked], colours[walked], seeds, clustering.spacing, cfg,
                            np.arange(len(walked)) >= len(members))
-        walks[cluster] = (walked, len(members), walk, seeds)
+        walks[cluster] = (walked, len(members), walk)
         sure = sure_points(walk, cfg.colour_model_probability)
         for j, p in enumerate(positions):
             samples.setdefault(clicks[p].cls, []).append(colours[walked[sure == j]])
@@ -1089,341 +797,20 @@ def instance_ids(
     # one colour model per class, from every instance of it in the scene: copies look alike, and an instance
     # half taken by its neighbour still has siblings elsewhere that show the class's colours
     histograms = {cls: colour_histogram(np.concatenate(parts), cfg.colour_bins) for cls, parts in samples.items()}
-    undecided = np.zeros(len(means), dtype=bool)  # what the splits leave to the background
-    for cluster, (walked, num_members, walk, seeds) in walks.items():
-        positions = by_cluster[cluster]
-        background = np.arange(len(walked)) >= num_members
-        # after the colour models: they come from what the colour-weighted walk reaches surely
-        walk = rewalk_weakly_reached(walk, means[walked], colours[walked], seeds, cfg, background)
-        top = None
-        if cfg.split_height_margin > 0 and height is not None and len(positions) > 1:
-            top = np.array([np.median(tops[clicks[p].cls]) if clicks[p].cls in tops else np.inf for p in positions])
-        prior, fits = split_prior(walk, walked, positions, clicks, colours, histograms, height, top, cfg)
-        owner = walk_owners(walk, means[walked], cfg, prior)
-        settled = settled_by_height(walk, fits, owner) if fits is not None and cfg.split_height_reseed > 0 else None
-        if settled is not None and (settled >= 0).any():
-            # walk again with the settled points as seeds; what lies under them follows them
-            again = random_walk(means[walked], colours[walked], seeds, clustering.spacing, cfg, background, settled)
-            again = rewalk_weakly_reached(again, means[walked], colours[walked], seeds, cfg, background, settled)
-            prior, _ = split_prior(again, walked, positions, clicks, colours, histograms, height, top, cfg)
-            owner = take_under_settled(owner, walk_owners(again, means[walked], cfg, prior), settled,
-                                       means[walked] @ floor_basis(floor[:3]), height[walked],
-                                       cfg.split_height_reseed * clustering.spacing)
-        owner = owner[:num_members]  # the plane's points stay planes
+    for cluster, (walked, num_members, walk) in walks.items():
+        owner = walk_owners(walk, means[walked], cfg)[:num_members]  # the plane's points stay planes
         members = walked[:num_members]
-        for j, p in enumerate(positions):
+        for j, p in enumerate(by_cluster[cluster]):
             ids[members[owner == j]] = p + 1
-        undecided[members[owner == SHARED]] = True
-    if cfg.class_size_cut > 0:
-        up = None if floor is None or not cfg.class_size_across_floor else floor[:3]
-        ids = cut_beyond_class_size(ids, means, opacities, clicks, cfg, up)
-    if floor is not None:
-        ids = claim_within_footprint(ids, means, opacities, undecided, clicks, clustering.labels,
-                                     [chosen[c.index] for c in clicks], floor, clustering.spacing, cfg)
-    if floor is not None:
-        # a class standing on a step or a platform (its copies' lowest points above the band) has its own ground
-        raised = {cls: float(np.median(b)) for cls, b in bottoms.items() if np.median(b) > cfg.floor_band}
-        ground = {k + 1: raised[c.cls] for k, c in enumerate(clicks) if c.cls in raised}
-        ids = cut_off_the_floor(ids, means, floor, clustering.spacing, cfg.below_floor, cfg.floor_band, cfg.floor_reach,
-                                cfg.floor_support, ground, opacities >= cfg.floor_support_opacity)
-        if cfg.floor_under_band > 0:
-            ids = cut_off_the_floor(ids, means, floor, clustering.spacing, 0.0, cfg.floor_under_band, cfg.floor_reach,
-                                    np.inf, ground, opacities >= cfg.floor_support_opacity)
-    if cfg.one_piece_radius > 0:
-        ids = keep_the_largest_piece(ids, means, cfg.one_piece_radius * clustering.spacing, cfg.piece_min_fraction)
+    if floor is not None and cfg.floor_under_band > 0:
+        # a class whose copies' lowest points lie above the floor (on a step, a platform) has its own ground
+        ground = {k + 1: float(np.median(bottoms[c.cls])) for k, c in enumerate(clicks)
+                  if c.cls in bottoms and np.median(bottoms[c.cls]) > 0}
+        ids = cut_off_the_floor(ids, means, floor, clustering.spacing, cfg.floor_under_band, cfg.floor_reach, ground,
+                                opacities >= cfg.floor_support_opacity)
     if cfg.colour_reclaim_radius > 0:
         ids = reclaim_by_colour(ids, means, colours, on_plane, histograms, [c.cls for c in clicks], clustering.spacing, cfg)
     return ids
-
-
-def split_prior(
-    walk: Walk, walked: np.ndarray, positions: Sequence[int], clicks: Sequence[LiftedClick], colours: np.ndarray,
-    histograms: Dict[str, np.ndarray], height: Optional[np.ndarray], top: Optional[np.ndarray], cfg: ClusteringConfig,
-) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
-    """The prior :func:`walk_owners` weighs a split's walk with, per free point of ``walk`` and click.
-
-    Args:
-        walk: the cluster's walk over the points ``walked`` [P] (indices into the scene's Gaussians).
-        positions: [S] the cluster's clicks (positions in ``clicks``).
-        colours: [N, 3]; histograms: class → :func:`colour_histogram`.
-        height: [N] height above the floor in spacings, or None; top: [S] each click's class top (spacings), or
-            None for no height test.
-
-    Returns:
-        prior [F, S] (None: no prior): the class colour likelihoods normalised over the clicks and raised to
-        ``split_colour_prior``, times 0 where a point lies more than ``split_height_margin`` above a click's
-        class top; and that height test [F, S] bool (None when not made).
-    """
-    if len(positions) < 2:
-        return None, None
-    prior = None
-    if cfg.split_colour_prior > 0:
-        bins = colour_bin(colours[walked[walk.free]], cfg.colour_bins)
-        likelihood = np.stack([histograms[clicks[p].cls][bins] for p in positions], axis=1)
-        prior = (likelihood / likelihood.sum(axis=1, keepdims=True)) ** cfg.split_colour_prior
-    if height is None or top is None:
-        return prior, None
-    fits = height[walked[walk.free]][:, None] <= top[None, :] + cfg.split_height_margin
-    return (fits.astype(np.float64) if prior is None else prior * fits), fits
-
-
-def settled_by_height(walk: Walk, fits: np.ndarray, owner: np.ndarray) -> np.ndarray:
-    """[P] the click of each point that the height test took from the walk's favourite and gave to another click
-    it fits (the top of a chair's back above the table it touches), -1 elsewhere.
-
-    Args:
-        walk: the cluster's walk; fits: [F, S] the height test of :func:`split_prior`; owner: [P] the owners
-            :func:`walk_owners` chose with that prior.
-    """
-    rows = np.arange(len(walk.free))
-    favourite = np.argmax(walk.probabilities[:, : walk.num_clicks], axis=1)
-    chosen = owner[walk.free]
-    moved = ~fits[rows, favourite] & (chosen >= 0) & fits[rows, np.maximum(chosen, 0)]
-    settled = np.full(len(owner), -1, dtype=np.int64)
-    settled[walk.free[moved]] = chosen[moved]
-    return settled
-
-
-def take_under_settled(
-    owner: np.ndarray, again: np.ndarray, settled: np.ndarray, across: np.ndarray, height: np.ndarray, radius: float,
-) -> np.ndarray:
-    """``owner`` with the second walk's answer taken where a point lies under a settled point of that click.
-
-    The second walk has the settled points as seeds, so what holds them up (the rest of the chair's back,
-    down to the seat) goes with them; elsewhere it could pull a thin object's neighbour (the table top the
-    back touches) along, so only points within ``radius`` across the floor of a settled point of the new
-    click, and lower than it, change.
-
-    Args:
-        owner, again: [P] click index (or SHARED / -1) from the first and the second walk.
-        settled: [P] from :func:`settled_by_height`.
-        across: [P, 2] coordinates across the floor; height: [P] above it; radius: in the same unit as ``across``.
-
-    Returns:
-        [P] owners.
-    """
-    from scipy.spatial import cKDTree
-
-    out = owner.copy()
-    for j in np.unique(settled[settled >= 0]):
-        anchors = np.flatnonzero(settled == j)
-        candidates = np.flatnonzero((again == j) & (owner != j))
-        if not len(candidates):
-            continue
-        dist, nearest = cKDTree(across[anchors]).query(across[candidates], k=1)
-        under = (dist <= radius) & (height[candidates] < height[anchors[nearest]])
-        out[candidates[under]] = j
-    return out
-
-
-def copy_footprints(
-    ids: np.ndarray, across: np.ndarray, solid: np.ndarray, classes: Sequence[str]
-) -> Tuple[np.ndarray, np.ndarray]:
-    """Each instance's axis across the floor and its class's footprint radius.
-
-    Copies differ by a turn about the floor's normal, so one disc about each copy's axis holds every one of
-    them: its radius is the median over the class's copies of the 98th percentile of their solid points'
-    distances from their axes (the median, since a copy that holds a strip of a beam is wider).
-
-    Args:
-        ids: [N] instance id per point (click position + 1, 0 = background).
-        across: [N, 2] coordinates across the floor; solid: [N] bool, the points that measure.
-        classes: [K] class of each click.
-
-    Returns:
-        axes [K, 2] (NaN for an instance with fewer than 10 solid points), radius [K] (NaN where the class has
-        fewer than two such instances).
-    """
-    axes = np.full((len(classes), 2), np.nan)
-    spread = np.full(len(classes), np.nan)
-    for k in range(len(classes)):
-        own = across[(ids == k + 1) & solid]
-        if len(own) >= 10:
-            axes[k] = np.median(own, axis=0)
-            spread[k] = np.percentile(np.linalg.norm(own - axes[k], axis=1), 98)
-    radius = np.full(len(classes), np.nan)
-    for cls in set(classes):
-        members = [k for k, c in enumerate(classes) if c == cls and np.isfinite(spread[k])]
-        if len(members) >= 2:
-            radius[[k for k, c in enumerate(classes) if c == cls]] = float(np.median(spread[members]))
-    return axes, radius
-
-
-def heights_within_footprint(
-    distance: np.ndarray, height: np.ndarray, counted: np.ndarray, radius: float, start: float, slice_height: float,
-    gap: float, ring: float, overflow: float,
-) -> Tuple[float, float]:
-    """The run of heights about ``start`` where the scene's slices stay within one footprint.
-
-    Slices of ``slice_height`` are taken up and down from the one holding ``start``; a slice belongs to the
-    copy while the counted points in the ring ``radius + gap < distance ≤ radius + gap + ring`` number at most ``overflow``
-    times those within ``radius`` (a beam, a step or the floor runs on beyond the footprint), and while it
-    holds any point within ``radius`` at all.
-
-    Args:
-        distance: [N] distance of each point across the floor from the copy's axis; height: [N] above the
-            floor; counted: [N] bool, the points counted. All lengths in one unit.
-        radius: the footprint's; start: a height inside the copy.
-
-    Returns:
-        (low, high): the run is ``low ≤ height < high``; (start, start) when the slice at ``start`` itself runs
-        on beyond the footprint.
-    """
-    counted = counted & ((distance <= radius) | ((distance > radius + gap) & (distance <= radius + gap + ring)))
-    level = np.floor(height[counted] / slice_height).astype(np.int64)
-    inside = distance[counted] <= radius
-    first = int(np.floor(start / slice_height))
-    # counts per occupied slice only: a floater far above must not size an array
-    within = dict(zip(*[a.tolist() for a in np.unique(level[inside], return_counts=True)]))
-    beyond = dict(zip(*[a.tolist() for a in np.unique(level[~inside], return_counts=True)]))
-
-    def belongs(b: int) -> bool:
-        return within.get(b, 0) > 0 and beyond.get(b, 0) <= overflow * within[b]
-
-    if not belongs(first):
-        return start, start
-    high = first
-    while belongs(high + 1):
-        high += 1
-    low = first
-    while belongs(low - 1):
-        low -= 1
-    return low * slice_height, (high + 1) * slice_height
-
-
-def claim_within_footprint(
-    ids: np.ndarray, means: np.ndarray, opacities: np.ndarray, undecided: np.ndarray, clicks: Sequence[LiftedClick],
-    labels: np.ndarray, click_clusters: Sequence[int], floor: np.ndarray, spacing: float, cfg: ClusteringConfig,
-) -> np.ndarray:
-    """Gives the points a split left undecided to the one copy whose footprint holds them.
-
-    A column's capital lies between its shaft and the beam that runs on to the next columns, so the walk
-    reaches it from the neighbours too and leaves it to the background. Copies stand on the floor and differ by
-    a turn about its normal, so the disc of the class's footprint about each copy's axis (:func:`copy_footprints`)
-    holds the whole copy; where the scene's slice at some height runs on beyond that disc, something else (the
-    beam, a step, the floor) begins (:func:`heights_within_footprint`). An undecided point inside exactly one
-    copy's disc, at a height where that copy's slices stay inside it, joins that copy. With
-    ``footprint_cut_above``, a copy's points above both its own run and the median run of its class go to the
-    background (an end column's strip of the beam).
-
-    Args:
-        ids: [N] instance id per Gaussian (click position + 1, 0 = background).
-        means: [N, 3]; opacities: [N] in [0, 1].
-        undecided: [N] bool, the points a split left to the background.
-        clicks: the lifted clicks, in id order.
-        labels: [N] cluster of each Gaussian; click_clusters: [K] the cluster of each click. Only a copy's own
-            cluster can run on beyond it (a level sheet of the floor's Gaussians at a chess piece's top height
-            is no beam).
-        floor: [4] the floor plane (:func:`floor_plane`), unit normal up.
-        spacing: the length unit.
-
-    Returns:
-        [N] ids.
-    """
-    if cfg.footprint_margin <= 0 or not (undecided.any() or cfg.footprint_cut_above):
-        return ids
-    solid = opacities >= cfg.min_opacity
-    across = means @ floor_basis(floor[:3]) / spacing
-    height = (means @ floor[:3] + floor[3]) / spacing
-    axes, radius = copy_footprints(ids, across, solid, [c.cls for c in clicks])
-    usable = np.flatnonzero(np.isfinite(radius) & np.isfinite(axes[:, 0]))
-    if not len(usable):
-        return ids
-    reach = radius[usable] + cfg.footprint_margin
-    loose = np.flatnonzero(undecided)
-    holders = np.linalg.norm(across[loose, None, :] - axes[usable][None, :, :], axis=2) <= reach[None, :]  # [U, K']
-    alone = holders.sum(axis=1) == 1
-    out = ids.copy()
-    runs = np.zeros((len(usable), 2))
-    for j, k in enumerate(usable):
-        # what another copy holds is not what runs on beyond this one (the table top a chair is tucked under)
-        counted = solid & (labels == click_clusters[k]) & ((ids == 0) | (ids == k + 1))
-        start = float(np.median(height[(ids == k + 1) & solid]))
-        runs[j] = heights_within_footprint(np.linalg.norm(across - axes[k], axis=1), height, counted, float(reach[j]),
-                                           start, cfg.footprint_slice, cfg.footprint_gap, cfg.footprint_ring,
-                                           cfg.footprint_overflow)
-        candidates = loose[holders[:, j] & alone]
-        out[candidates[(height[candidates] >= runs[j, 0]) & (height[candidates] < runs[j, 1])]] = k + 1
-    if cfg.footprint_cut_above:
-        classes = np.array([clicks[k].cls for k in usable])
-        for cls in np.unique(classes):
-            mine = np.flatnonzero((classes == cls) & (runs[:, 1] > runs[:, 0]))
-            if len(mine) < 2:
-                continue
-            top = float(np.median(runs[mine, 1]))  # one copy's run may end early where a wall stands beside it
-            for j in mine:
-                above = (out == usable[j] + 1) & (height >= max(top, runs[j, 1]))
-                out[above] = 0
-    return out
-
-
-def cut_beyond_class_size(
-    ids: np.ndarray, means: np.ndarray, opacities: np.ndarray, clicks: Sequence[LiftedClick], cfg: ClusteringConfig,
-    up: Optional[np.ndarray] = None,
-) -> np.ndarray:
-    """Sends to the background what lies farther from an instance's click than its class's copies are large.
-
-    Copies have one size. A cluster that runs on through a line of fuzz into the ground (a chess pawn whose
-    cluster reaches a patch of the floor's Gaussians 16 spacings away) gives that patch to the click, however
-    the walk splits it. Per class with at least two instances, the size is the diagonal of the box between
-    the 2nd and 98th percentiles of each instance's solid Gaussians: the median over the instances (the
-    smaller one of two, since one of them may be the swollen one); an instance's Gaussians farther than
-    ``class_size_cut`` times that from its click are background. No part of an object lies farther from a
-    point on it than its diagonal, wherever it was clicked. With ``up``, the same holds across the floor:
-    copies standing on it differ by a turn about ``up``, so the test is made again on the points projected
-    onto the floor, which catches a strip of a beam above a column that lies within the column's height.
-
-    Args:
-        ids: [N] instance id per Gaussian (click position + 1, 0 = background).
-        means: [N, 3]; opacities: [N] in [0, 1].
-        clicks: the lifted clicks, in id order.
-        up: [3] unit normal of the floor (:func:`floor_plane`), or None.
-
-    Returns:
-        [N] ids with the far Gaussians set to 0.
-    """
-    click_points = np.stack([click.point.double().numpy() for click in clicks]) if len(clicks) else np.zeros((0, 3))
-    solid, classes = opacities >= cfg.min_opacity, [c.cls for c in clicks]
-    out = cut_by_size(ids, means, click_points, solid, classes, cfg.class_size_cut)
-    if up is not None:
-        floor = floor_basis(up)
-        out = cut_by_size(out, means @ floor, click_points @ floor, solid, classes, cfg.class_size_cut)
-    return out
-
-
-def cut_by_size(
-    ids: np.ndarray, coords: np.ndarray, click_coords: np.ndarray, solid: np.ndarray, classes: Sequence[str],
-    factor: float,
-) -> np.ndarray:
-    """The size test of :func:`cut_beyond_class_size` in any coordinates.
-
-    Args:
-        ids: [N] instance id per point (click position + 1, 0 = background).
-        coords: [N, D] point coordinates; click_coords: [K, D] of the clicks; solid: [N] bool, the points that
-            measure an instance's size; classes: [K] class of each click.
-        factor: a point farther than ``factor`` × its class's size from its click goes to the background.
-
-    Returns:
-        [N] ids.
-    """
-    by_class: Dict[str, List[int]] = {}
-    for k, cls in enumerate(classes):
-        by_class.setdefault(cls, []).append(k)
-    out = ids.copy()
-    for positions in by_class.values():
-        sizes = []
-        for k in positions:
-            points = coords[(ids == k + 1) & solid]
-            if len(points) >= 10:
-                sizes.append(float(np.linalg.norm(np.percentile(points, 98, axis=0) - np.percentile(points, 2, axis=0))))
-        if len(sizes) < 2:
-            continue
-        limit = factor * (float(np.median(sizes)) if len(sizes) >= 3 else min(sizes))
-        for k in positions:
-            members = np.flatnonzero(ids == k + 1)
-            far = np.linalg.norm(coords[members] - click_coords[k], axis=1) > limit
-            out[members[far]] = 0
-    return out
 
 
 def floor_basis(up: np.ndarray) -> np.ndarray:
@@ -1471,53 +858,25 @@ def floor_plane(planes: Sequence[np.ndarray], prior: Sequence[float] = UP,
     return best
 
 
-def keep_the_largest_piece(ids: np.ndarray, means: np.ndarray, radius: float, min_fraction: float = 1.0) -> np.ndarray:
-    """Each instance's points that the cuts before left apart from its largest piece go to the background.
-
-    Args:
-        ids: [N] instance id per point (0 = background); means: [N, 3].
-        radius: points within this distance of each other are one piece (single linkage).
-        min_fraction: pieces holding at least this fraction of the largest one's points stay too.
-
-    Returns:
-        [N] ids.
-    """
-    out = ids.copy()
-    for k in np.unique(ids[ids > 0]):
-        members = np.flatnonzero(ids == k)
-        if len(members) < 2:
-            continue
-        labels = dbscan_labels(means[members], radius, 1)  # single linkage: every point in some piece
-        sizes = np.bincount(labels)
-        out[members[sizes[labels] < min_fraction * sizes.max()]] = 0
-    return out
-
-
 def cut_off_the_floor(
-    ids: np.ndarray, means: np.ndarray, floor: np.ndarray, spacing: float, below: float, low: float, reach: float,
-    support: float, ground: Optional[Dict[int, float]] = None, holds: Optional[np.ndarray] = None,
+    ids: np.ndarray, means: np.ndarray, floor: np.ndarray, spacing: float, low: float, reach: float,
+    ground: Optional[Dict[int, float]] = None, holds: Optional[np.ndarray] = None,
 ) -> np.ndarray:
-    """Sends to the background an instance's Gaussians that no object standing on the floor has.
+    """Sends to the background an instance's low Gaussians that lie under nothing of it.
 
-    Copies stand on the floor: nothing of them lies under it, and what lies on it lies under the object. Two
-    kinds of the floor's own Gaussians still join an instance through its cluster: floaters under a thinly
-    reconstructed floor (seen through it, they render in front of the floor in some views) and faint Gaussians
-    just above it, beside a foot or under a table top. The first are more than ``below`` spacings under the
-    floor; the second lie within ``low`` spacings above it and farther across the floor than ``reach`` spacings
-    from every Gaussian of the instance between ``low`` and ``support × low`` spacings high (a leg's foot lies
-    under its leg; a patch of parquet beside it, or under the table's top, does not). An instance standing on a
-    step has its bands measured from the step (``ground``).
+    Copies stand on the floor, so what lies low of an object lies under the object; faint Gaussians of the floor
+    just above it, beside a foot or a leg, still join an instance through its cluster. An instance's Gaussians
+    within ``low`` spacings above its ground go to the background when they lie farther across the floor than
+    ``reach`` spacings from every one of its Gaussians higher than that.
 
     Args:
         ids: [N] instance id per Gaussian (0 = background); means: [N, 3].
         floor: [4] (unit normal pointing up, offset) of the floor plane (:func:`floor_plane`).
-        spacing: the length unit; below, low, reach: in spacings (``below`` <= 0 or ``low`` <= 0 turns its
-            part off); support: the top of the band that holds the feet up, in multiples of ``low`` (``np.inf``:
-            anything higher holds them up, so what lies low must lie under the object).
+        spacing: the length unit; low, reach: in spacings.
         ground: {instance id: height in spacings} of the level an instance stands on when that is not the
-            floor (a column on a temple's top step): its bands are measured from there.
+            floor (a column on a step): its band is measured from there.
         holds: [N] bool, the Gaussians that can hold a foot up (opaque ones; None: all): faint fuzz reaching
-            into the upper band must not hold up the fuzz under it.
+            above the band must not hold up the fuzz under it.
 
     Returns:
         [N] ids.
@@ -1527,16 +886,12 @@ def cut_off_the_floor(
     up = floor[:3]
     height = (means @ up + floor[3]) / spacing
     out = ids.copy()
-    if below > 0:
-        out[(out > 0) & (height < -below)] = 0
-    if low <= 0:
-        return out
     basis = floor_basis(up)
     holds = np.ones(len(means), dtype=bool) if holds is None else holds
     for k in np.unique(out[out > 0]):
         members = np.flatnonzero(out == k)
         h = height[members] - (ground or {}).get(int(k), 0.0)
-        raised = members[(h >= low) & (h < support * low) & holds[members]]
+        raised = members[(h >= low) & holds[members]]
         lowest = members[h < low]
         if len(raised) == 0 or len(lowest) == 0:
             continue
