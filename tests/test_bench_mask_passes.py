@@ -52,3 +52,10 @@ def test_a_rule_pays_only_when_the_mean_drops_by_the_margin_without_it(monkeypat
     assert rows["colour_reclaim"]["verdict"] == "does not pay"
     assert rows["colour_reclaim"]["scenes_worse"] == 1 and rows["colour_reclaim"]["scenes_better"] == 1
     assert rows["colour_reclaim"]["instances_moved"] == []
+
+
+def test_the_report_split_is_refused(tmp_path):
+    from splatreplace_ns.bench.mask_passes import run_mask_passes
+
+    with pytest.raises(ValueError, match="not in the dev split"):
+        run_mask_passes(BenchMaskPassesConfig(seeds=(0, 10000), out_dir=tmp_path))

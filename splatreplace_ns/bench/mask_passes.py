@@ -1,8 +1,9 @@
 """``splatreplace bench mask-passes``: each rule of the geometric mask generator taken out alone, on the scene suite.
 
 The geometric backend (:mod:`splatreplace_ns.masks.clustering`) has rules beyond plain clustering and splitting.
-Here every rule is switched off alone (its own "0 turns it off" setting) on scenes of the suite's development split, from the same base model per scene, and the masks are
-scored against the scene's ground truth (mIoU over every frame, :func:`splatreplace_ns.bench.masks.score_masks`).
+Here every rule is switched off alone (its own "0 turns it off" setting) on scenes of the suite's development
+split, from the same base model per scene, and the masks are scored against the scene's ground truth (mIoU over
+every frame, :func:`splatreplace_ns.bench.masks.score_masks`).
 A rule *pays* when the mean mIoU over the scenes drops by at least ``pays_at`` without it.
 
 All variants of a scene start from the same base model. The clustering is nearly deterministic on one base model
@@ -106,6 +107,11 @@ def _scene_run(cfg: BenchMaskPassesConfig, seed: int, name: str, base_config: Op
 
 def run_mask_passes(cfg: BenchMaskPassesConfig) -> Dict:
     """Every variant on every scene; results already in ``out_dir/<seed>/<variant>.json`` are reused."""
+    from splatreplace_ns.bench.suite import DEV_SEEDS
+
+    foreign = [seed for seed in cfg.seeds if seed not in DEV_SEEDS]
+    if foreign:  # rules are chosen on the dev split only; the report split is never looked at
+        raise ValueError(f"seeds {foreign} are not in the dev split ({DEV_SEEDS[0]}-{DEV_SEEDS[-1]})")
     names = ["defaults", *[p for p in cfg.passes if p != "defaults"]]
     for name in names:
         variant_settings(name)  # an unknown pass stops here, before anything trains
