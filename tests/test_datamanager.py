@@ -252,6 +252,11 @@ def test_masks_scored_against_renders_are_read_where_the_cameras_render(tmp_path
             assert np.array_equal(dm.mask_as_rendered(dataset, idx, mask).numpy(), ours)
             from_half = dm.mask_as_rendered(dataset, idx, half).numpy()
             assert from_half.shape == code.shape and (from_half[exact] * 60 == code[exact]).mean() > 0.9
+    # a reference mask of an eval view scored first, before anything read the eval images (as a benchmark does
+    # right after segmentation): the same pixels
+    fresh = setup_dm(tmp_path)
+    assert np.array_equal(fresh.mask_as_rendered(fresh.eval_dataset, 0, mask).numpy(),
+                          dm.mask_as_rendered(dm.eval_dataset, 0, mask).numpy())
     # the captured mask at the same index is another part of the picture: what evaluation read before
     stored = dm.eval_dataset.get_data(0, image_type="uint8")["instance_mask"][..., 0].numpy()
     assert stored.shape != code.shape or (stored[exact] * 60 == code[exact]).mean() < 0.97

@@ -112,6 +112,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         if split is None:
             height, width = int(cameras.height[index]), int(cameras.width[index])
         else:
+            self._cached(split)  # nerfstudio caches the eval images when first asked; the captured cameras with them
             captured = self.captured_cameras[split]
             height, width = int(captured.height[index]), int(captured.width[index])
         if mask.shape[:2] != (height, width):
