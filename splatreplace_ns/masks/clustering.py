@@ -691,7 +691,7 @@ def random_walk_split(
     means: np.ndarray, colours: np.ndarray, seeds: Sequence[int], spacing: float, cfg: ClusteringConfig
 ) -> np.ndarray:
     """Splits one cluster among several seeds by the random walker alone (:func:`random_walk`,
-    :func:`walk_owners`; no background, no colour prior): every point goes to the seed its walk most likely
+    :func:`walk_owners`; no background): every point goes to the seed its walk most likely
     reaches first.
 
     Returns:
