@@ -195,3 +195,20 @@ def test_variant_labels_name_the_run_folders():
     assert suite.run_folder(gate, "s", default=True) == suite.run_folder(default, "s")
     seeded = BenchSuiteConfig(out_dir=Path("runs"), training_seed=3)
     assert suite.run_folder(seeded, "s").name == "s_1500-500-1000_seed3"
+
+
+def test_registration_summary_splits_the_refusals_by_the_pose_they_refused():
+    report = {"per_instance": [
+        {"gt_id": 2, "success": True, "rotation_error_deg": 1.0},
+        {"gt_id": 3, "success": True, "rotation_error_deg": 170.0},
+        {"gt_id": 4, "success": False, "rotation_error_deg": 0.0, "proposed_rotation_error_deg": 0.0},
+        {"gt_id": 5, "success": False, "rotation_error_deg": 3.0, "proposed_rotation_error_deg": 91.0},
+        {"gt_id": 6, "success": False, "rotation_error_deg": 2.0},  # no pose was proposed (no candidate)
+    ]}
+    registration = {"1": {"success": True}, "4": {"success": False}, "5": {"success": False}, "6": {"success": False}}
+    s = suite._registration_summary(report, registration)
+    assert s["wrong"] == [3] and s["failures"] == [4, 5, 6]
+    assert s["refused_right"] == [4] and s["refused_wrong"] == [5]
+    rows = [{**_row(0, 1.0, 1.0, {}), "registration": s}, _row(1, 0.0, 0.0, {}, failures=[7])]
+    total = summarise(rows)
+    assert total["failed_registrations"] == 4 and total["refused_right"] == 1 and total["refused_wrong"] == 1

@@ -247,6 +247,21 @@ def test_registration_errors_from_hand_made_registrations():
     assert report["num_registered"] == 3 and report["num_success"] == 2
     assert report["success_rate"] == pytest.approx(2 / 3)
     assert report["rotation_error_deg_mean"] == pytest.approx(3.5, abs=1e-5)
+    # a refusal keeps the identity as its transform; what it refused is scored from proposed_transform, and
+    # every candidate the registration considered from its own transform
+    refused = dict(registration)
+    refused["2"] = {"template": 1, "transform": np.eye(4).tolist(), "success": False,
+                    "proposed_transform": off_rot.tolist(),
+                    "candidates": [{"transform": off_rot.tolist(), "fitness": 0.15, "colour": 0.3, "inliers": 0,
+                                    "pair": [-1, 0]},
+                                   {"transform": (exact(2) @ rigid_about(rotation(z_axis_of(2), 180), t_src[2])).tolist(),
+                                    "fitness": 0.1, "colour": 0.05, "inliers": 9, "pair": [3, 4]}]}
+    row2 = {r["instance"]: r for r in registration_errors(refused, model_to_gt, gt_poses, symmetries, sizes)["per_instance"]}[2]
+    assert not row2["success"] and row2["rotation_error_deg"] > 10.0  # the identity is far from source 2's pose
+    assert row2["proposed_rotation_error_deg"] == pytest.approx(7.0, abs=1e-6)
+    assert [c["rotation_error_deg"] for c in row2["candidates"]] == pytest.approx([7.0, 0.0], abs=1e-5)  # 180° ≡ 0° under rot_z:4
+    assert row2["candidates"][1]["inliers"] == 9 and row2["candidates"][0]["pair"] == [-1, 0]
+    assert "proposed_rotation_error_deg" not in rows[3] and "candidates" not in rows[3]
     # with no symmetry the quarter turn counts in full
     asym = registration_errors(registration, model_to_gt, gt_poses, {}, sizes)
     assert {r["instance"]: r for r in asym["per_instance"]}[3]["rotation_error_deg"] == pytest.approx(90.0, abs=1e-5)

@@ -116,6 +116,10 @@ def test_register_instances_recovers_ground_truth(tiny):
         # copies on one floor: the default refines the chosen pose as a turn about up, so no tilt is left
         assert "(upright)" in res.message, res.message
         assert np.allclose(res.transform[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9)
+        # an accepted pose is the proposed one; the candidates are every view pair posed and every turn
+        assert np.array_equal(res.proposed_transform, res.transform)
+        assert sum(c["pair"][0] == -1 for c in res.candidates) == cfg.multistart_turns
+        assert res.pair in [tuple(c["pair"]) for c in res.candidates]
     print(f"register_instances: {elapsed:.1f} s")
 
 
@@ -191,6 +195,9 @@ def test_untextured_source_fails_cleanly(tiny):
     assert not res.success, res.message
     assert "instance 1" in res.message
     assert np.allclose(res.transform, np.eye(4))
+    # what was refused stays known: the chosen candidate's pose, below the colour score asked for
+    assert res.proposed_transform is not None and not np.allclose(res.proposed_transform, np.eye(4))
+    assert max(c["colour"] for c in res.candidates) < 0.5
 
 
 def test_fpfh_method_runs(tiny):

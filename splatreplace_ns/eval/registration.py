@@ -55,7 +55,8 @@ def registration_errors(
 
     Returns:
         {"per_instance": [{instance, gt_id, template, template_gt_id, success, rotation_error_deg,
-        translation_error_rel}], "skipped": [{instance, reason}], "num_registered", "num_success",
+        translation_error_rel, and where the entry has them proposed_rotation_error_deg (the pose chosen before the
+        acceptance test) and candidates [{rotation_error_deg, fitness, colour, inliers, pair}]}], "skipped": [{instance, reason}], "num_registered", "num_success",
         "success_rate", and over the successful ones "rotation_error_deg_mean" / "_median",
         "translation_error_rel_mean" / "_median" (None when there is none)}. Templates registered to
         themselves are left out.
@@ -86,6 +87,17 @@ def registration_errors(
                 "translation_error_rel": None if not size else translation_error_rel(t_est, t_gt, size),
             }
         )
+
+        def error_of(transform) -> float:  # rotation error of a pose the registration considered
+            R, _, _ = split_similarity(implied_source_pose(np.asarray(transform, dtype=np.float64), gt_poses[gt_tpl]))
+            return rotation_error_deg(R, R_gt, symmetries.get(gt_src, "none"))
+
+        if entry.get("proposed_transform") is not None:
+            rows[-1]["proposed_rotation_error_deg"] = error_of(entry["proposed_transform"])
+        if entry.get("candidates"):
+            rows[-1]["candidates"] = [{"rotation_error_deg": error_of(c["transform"]), "fitness": c.get("fitness"),
+                                       "colour": c.get("colour"), "inliers": c.get("inliers"), "pair": c.get("pair")}
+                                      for c in entry["candidates"]]
     good = [r for r in rows if r["success"]]
 
     def summary(key: str, fn) -> Optional[float]:

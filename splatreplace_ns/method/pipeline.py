@@ -681,6 +681,10 @@ class SplatReplacePipeline(VanillaPipeline):
             iid: {
                 "template": int(r.template_id), "transform": np.asarray(r.transform).tolist(), "success": bool(r.success),
                 "inliers": int(r.num_inliers), "fitness": float(r.fitness), "message": r.message, "time_s": float(r.time_s),
+                "proposed_transform": None if r.proposed_transform is None else np.asarray(r.proposed_transform).tolist(),
+                "candidates": [{"transform": np.asarray(c["transform"]).tolist(), "fitness": float(c["fitness"]),
+                                "colour": None if c["colour"] is None else float(c["colour"]),
+                                "inliers": int(c["inliers"]), "pair": [int(v) for v in c["pair"]]} for c in r.candidates],
             }
             for iid, r in results.items()
         }

@@ -243,6 +243,11 @@ class RegistrationResult:
         time_s: wall time of this registration.
         pair: (source view, template view) of the chosen pair, or None.
         coarse_transform: (4, 4) transform before ICP.
+        proposed_transform: (4, 4) the pose chosen before the acceptance test (equal to ``transform`` when
+            accepted; None when no candidate was posed): what a refusal refused.
+        candidates: one dict per refined candidate pose: ``transform`` (4, 4), ``fitness``, ``colour`` (the
+            colour score; None with ``select="inliers"``), ``inliers`` (0 for a multi-start turn), ``pair``
+            (source view, template view), or (-1, k) for turn k.
     """
 
     instance_id: int
@@ -255,6 +260,8 @@ class RegistrationResult:
     time_s: float = 0.0
     pair: Optional[tuple[int, int]] = None
     coarse_transform: Optional[np.ndarray] = None
+    proposed_transform: Optional[np.ndarray] = None
+    candidates: list = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -650,6 +657,7 @@ def register_instance(
         n_inl, i, j, coarse = candidates[0]
         T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
         score = None
+        tried = [{"transform": T, "fitness": fit, "colour": None, "inliers": n_inl, "pair": (i, j)}]
     else:  # refine every candidate, keep the most photometrically consistent alignment
         src_rgb, tpl_rgb = _base_rgb(source)[src_keep], _base_rgb(template)[tpl_keep]
         refined = []
@@ -661,6 +669,8 @@ def register_instance(
         at = choose_candidate([r[6] for r in refined], [r[0] for r in refined],
                               [(r[1], -r[2], -r[3]) for r in refined], cfg)
         score, n_inl, i, j, coarse, T, fit = refined[at]
+        tried = [{"transform": r[5], "fitness": r[6], "colour": r[0], "inliers": r[1], "pair": (r[2], r[3])}
+                 for r in refined]
     chosen_T = T
     T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
     if T is not chosen_T:  # polished: its fitness changed
@@ -678,7 +688,7 @@ def register_instance(
                f"photometric fitness {score if score is not None else float('nan'):.3f}, "
                f"min {cfg.min_photometric_fitness})")
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
-                              time.perf_counter() - t0, (i, j), coarse)
+                              time.perf_counter() - t0, (i, j), coarse, T, tried)
 
 
 def with_floor_up_axis(
