@@ -325,3 +325,33 @@ def test_choose_candidate_shape_first_then_colour():
     assert choose_candidate([0.90, 0.95], [0.6, 0.5], ties[:2], cfg) == 0
     # nothing acceptable: still an index (the caller reports the failure)
     assert choose_candidate([0.1, 0.15], [0.5, 0.4], ties[:2], cfg) in (0, 1)
+
+
+def test_looks_alike_tells_a_symmetry_from_a_one_sided_detail():
+    from scipy.spatial.transform import Rotation
+
+    from splatreplace_ns.register.pipeline import looks_alike
+
+    # a square frame of points, its four sides coloured alike (symmetric under quarter turns) but for a red
+    # marker on one side (a drawer, a lamp's arm)
+    t = np.linspace(-1, 1, 41)
+    sides = [np.stack([t, np.full_like(t, s), np.zeros_like(t)], 1) for s in (-1, 1)]
+    sides += [np.stack([np.full_like(t, s), t, np.zeros_like(t)], 1) for s in (-1, 1)]
+    points = np.concatenate(sides)
+    rgb = np.full_like(points, 0.5)
+    plain = rgb.copy()
+    rgb[(points[:, 0] > 0.99) & (np.abs(points[:, 1]) < 0.5)] = (1.0, 0.0, 0.0)  # the marker on the +x side
+
+    def turn(deg):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+        return T
+
+    pose = turn(10.0)
+    assert looks_alike(points, rgb, pose, pose, 0.02, 0.1) == 1.0
+    quarter = looks_alike(points, plain, turn(100.0), pose, 0.02, 0.1)
+    assert quarter == pytest.approx(1.0)  # the plain square is the same under a quarter turn
+    marked = looks_alike(points, rgb, turn(100.0), pose, 0.02, 0.1)
+    n_marker = int((rgb[:, 1] == 0.0).sum())
+    assert marked == pytest.approx(1.0 - 2 * n_marker / len(points), abs=1e-9)  # the marker and what it lands on
+    assert looks_alike(points, rgb, turn(55.0), pose, 0.02, 0.1) < 0.2  # 45° off: the sides no longer overlap

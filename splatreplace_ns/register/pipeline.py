@@ -247,7 +247,8 @@ class RegistrationResult:
             accepted; None when no candidate was posed): what a refusal refused.
         candidates: one dict per refined candidate pose: ``transform`` (4, 4), ``fitness``, ``colour`` (the
             colour score; None with ``select="inliers"``), ``inliers`` (0 for a multi-start turn), ``pair``
-            (source view, template view), or (-1, k) for turn k.
+            (source view, template view), or (-1, k) for turn k, and with ``select="photometric"``
+            ``looks_alike`` (:func:`looks_alike` of the candidate and the chosen pose before the upright polish).
     """
 
     instance_id: int
@@ -524,6 +525,21 @@ def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float)
     return float(ok.mean())
 
 
+def looks_alike(points: np.ndarray, rgb: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, dist: float,
+                tol: float) -> float:
+    """How alike the template looks under two candidate poses: its colour score against itself moved by
+    ``T_a · T_b⁻¹`` (1 for the same pose; near 1 for a turn the template is symmetric under; low for a turn that
+    puts a one-sided detail on the other side).
+
+    Args:
+        points: (N, 3) template centres; rgb: (N, 3) their colours; T_a, T_b: (4, 4) source → template poses;
+        dist: distance under which two centres overlap; tol: mean absolute RGB difference under which they agree.
+    Returns:
+        the fraction of moved centres with an overlapping centre of the same colour, in [0, 1].
+    """
+    return _photometric_fitness(points, rgb, points, rgb, np.asarray(T_a) @ np.linalg.inv(np.asarray(T_b)), dist, tol)
+
+
 def choose_candidate(
     fitness: Sequence[float], colour: Sequence[float], tiebreak: Sequence[tuple], cfg: RegistrationConfig,
 ) -> int:
@@ -669,7 +685,9 @@ def register_instance(
         at = choose_candidate([r[6] for r in refined], [r[0] for r in refined],
                               [(r[1], -r[2], -r[3]) for r in refined], cfg)
         score, n_inl, i, j, coarse, T, fit = refined[at]
-        tried = [{"transform": r[5], "fitness": r[6], "colour": r[0], "inliers": r[1], "pair": (r[2], r[3])}
+        dist = cfg.icp_max_distance_rel * radius
+        tried = [{"transform": r[5], "fitness": r[6], "colour": r[0], "inliers": r[1], "pair": (r[2], r[3]),
+                  "looks_alike": looks_alike(tpl_c, tpl_rgb, r[5], T, dist, cfg.color_tolerance)}
                  for r in refined]
     chosen_T = T
     T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
