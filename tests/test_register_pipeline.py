@@ -355,3 +355,25 @@ def test_looks_alike_tells_a_symmetry_from_a_one_sided_detail():
     n_marker = int((rgb[:, 1] == 0.0).sum())
     assert marked == pytest.approx(1.0 - 2 * n_marker / len(points), abs=1e-9)  # the marker and what it lands on
     assert looks_alike(points, rgb, turn(55.0), pose, 0.02, 0.1) < 0.2  # 45° off: the sides no longer overlap
+
+
+def test_ambiguous_rival_is_a_turned_pose_that_explains_the_colours_nearly_as_well():
+    from scipy.spatial.transform import Rotation
+
+    from splatreplace_ns.register.pipeline import ambiguous_rival
+
+    def cand(deg, colour, alike):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+        return {"transform": T, "colour": colour, "looks_alike": alike}
+
+    cfg = RegistrationConfig(rival_ratio=0.8)
+    chosen = cand(0.0, 0.30, 1.0)
+    # close by (the same pose, ICP landing a few degrees apart) or clearly worse: no rival
+    assert ambiguous_rival([chosen, cand(8.0, 0.29, 0.1), cand(180.0, 0.20, 0.1)], 0, cfg) is None
+    # a half turn nearly as good, under which the template looks different: ambiguous, the strongest rival named
+    assert ambiguous_rival([chosen, cand(180.0, 0.25, 0.1), cand(90.0, 0.27, 0.1)], 0, cfg) == 2
+    # the same, but the template looks alike under the turn (a symmetry): no harm either way, not ambiguous
+    assert ambiguous_rival([chosen, cand(90.0, 0.27, 0.9)], 0, cfg) is None
+    # off by default
+    assert ambiguous_rival([chosen, cand(180.0, 0.29, 0.1)], 0, RegistrationConfig()) is None

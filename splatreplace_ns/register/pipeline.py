@@ -115,6 +115,11 @@ class RegistrationConfig:
             seen copy's lit faces on the template's lit faces can win on colour while fitting the shape clearly
             worse (office's segmented chair 5: 178° off, fitness 0.535 against 0.680 for its right pose). 0: the
             colour score alone (bench register, row ``no_shape_first``).
+        rival_ratio: with select="photometric", the chosen pose is refused as ambiguous when a rival explains
+            the instance's colours at least this fraction as well: a candidate turned more than
+            ``rival_min_turn_deg`` from it under which the template does not look alike (:func:`looks_alike`
+            below ``rival_max_alike``; a turn the template is symmetric under is no rival). 0: off.
+        rival_min_turn_deg, rival_max_alike: see ``rival_ratio``.
         seed: RANSAC seed.
     """
 
@@ -151,6 +156,9 @@ class RegistrationConfig:
     upright: bool = True
     upright_max_tilt_deg: float = 15.0
     colour_fitness_ratio: float = 0.85
+    rival_ratio: float = 0.0
+    rival_min_turn_deg: float = 20.0
+    rival_max_alike: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -540,6 +548,30 @@ def looks_alike(points: np.ndarray, rgb: np.ndarray, T_a: np.ndarray, T_b: np.nd
     return _photometric_fitness(points, rgb, points, rgb, np.asarray(T_a) @ np.linalg.inv(np.asarray(T_b)), dist, tol)
 
 
+def _angle_between(T_a, T_b) -> float:
+    """Degrees of the rotation between two (4, 4) poses."""
+    R = np.asarray(T_a)[:3, :3] @ np.asarray(T_b)[:3, :3].T
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def ambiguous_rival(candidates: Sequence[dict], chosen: int, cfg: RegistrationConfig) -> Optional[int]:
+    """The index of the strongest rival that makes the chosen candidate ambiguous, or None (see
+    ``RegistrationConfig.rival_ratio``).
+
+    Args:
+        candidates: refined candidates with ``transform`` (4, 4), ``colour`` and ``looks_alike`` (against the
+            chosen one); chosen: the chosen index.
+    """
+    if cfg.rival_ratio <= 0.0:
+        return None
+    T_c, colour = candidates[chosen]["transform"], candidates[chosen]["colour"]
+    rivals = []
+    for k, c in enumerate(candidates):
+        if _angle_between(c["transform"], T_c) > cfg.rival_min_turn_deg and c["looks_alike"] < cfg.rival_max_alike and c["colour"] >= cfg.rival_ratio * colour:
+            rivals.append(k)
+    return max(rivals, key=lambda k: candidates[k]["colour"], default=None)
+
+
 def choose_candidate(
     fitness: Sequence[float], colour: Sequence[float], tiebreak: Sequence[tuple], cfg: RegistrationConfig,
 ) -> int:
@@ -694,6 +726,7 @@ def register_instance(
     if T is not chosen_T:  # polished: its fitness changed
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
+    rival = ambiguous_rival(tried, at, cfg) if cfg.select == "photometric" and ok else None
     if i < 0:
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
@@ -705,6 +738,12 @@ def register_instance(
         msg = (f"{_name(source)}: registration rejected (fitness {fit:.3f}, min {cfg.min_fitness}; "
                f"photometric fitness {score if score is not None else float('nan'):.3f}, "
                f"min {cfg.min_photometric_fitness})")
+    elif rival is not None:
+        turn = _angle_between(tried[rival]["transform"], tried[at]["transform"])
+        ok = False
+        msg = (f"{_name(source)}: registration ambiguous, not accepted (a pose turned {turn:.0f}° from the chosen "
+               f"one explains the colours nearly as well: {tried[rival]['colour']:.3f} against {score:.3f}, "
+               f"ratio over {cfg.rival_ratio})")
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
                               time.perf_counter() - t0, (i, j), coarse, T, tried)
 
