@@ -97,7 +97,6 @@ def registration_errors(
         if entry.get("candidates"):
             rows[-1]["candidates"] = [{"rotation_error_deg": error_of(c["transform"]), "fitness": c.get("fitness"),
                                        "colour": c.get("colour"), "inliers": c.get("inliers"), "pair": c.get("pair"),
-                                       "looks_alike": c.get("looks_alike"),
                                        "transform": np.asarray(c["transform"], dtype=np.float64).tolist()}
                                       for c in entry["candidates"]]
     good = [r for r in rows if r["success"]]

@@ -684,8 +684,7 @@ class SplatReplacePipeline(VanillaPipeline):
                 "proposed_transform": None if r.proposed_transform is None else np.asarray(r.proposed_transform).tolist(),
                 "candidates": [{"transform": np.asarray(c["transform"]).tolist(), "fitness": float(c["fitness"]),
                                 "colour": None if c["colour"] is None else float(c["colour"]),
-                                "inliers": int(c["inliers"]), "pair": [int(v) for v in c["pair"]],
-                                "looks_alike": c.get("looks_alike")} for c in r.candidates],
+                                "inliers": int(c["inliers"]), "pair": [int(v) for v in c["pair"]]} for c in r.candidates],
             }
             for iid, r in results.items()
         }

@@ -115,11 +115,6 @@ class RegistrationConfig:
             seen copy's lit faces on the template's lit faces can win on colour while fitting the shape clearly
             worse (office's segmented chair 5: 178° off, fitness 0.535 against 0.680 for its right pose). 0: the
             colour score alone (bench register, row ``no_shape_first``).
-        rival_ratio: with select="photometric", the chosen pose is refused as ambiguous when a rival explains
-            the instance's colours at least this fraction as well: a candidate turned more than
-            ``rival_min_turn_deg`` from it under which the template does not look alike (:func:`looks_alike`
-            below ``rival_max_alike``; a turn the template is symmetric under is no rival). 0: off.
-        rival_min_turn_deg, rival_max_alike: see ``rival_ratio``.
         seed: RANSAC seed.
     """
 
@@ -156,9 +151,6 @@ class RegistrationConfig:
     upright: bool = True
     upright_max_tilt_deg: float = 15.0
     colour_fitness_ratio: float = 0.85
-    rival_ratio: float = 0.0
-    rival_min_turn_deg: float = 20.0
-    rival_max_alike: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -255,8 +247,7 @@ class RegistrationResult:
             accepted; None when no candidate was posed): what a refusal refused.
         candidates: one dict per refined candidate pose: ``transform`` (4, 4), ``fitness``, ``colour`` (the
             colour score; None with ``select="inliers"``), ``inliers`` (0 for a multi-start turn), ``pair``
-            (source view, template view), or (-1, k) for turn k, and with ``select="photometric"``
-            ``looks_alike`` (:func:`looks_alike` of the candidate and the chosen pose before the upright polish).
+            (source view, template view), or (-1, k) for turn k.
     """
 
     instance_id: int
@@ -533,45 +524,6 @@ def _photometric_fitness(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float)
     return float(ok.mean())
 
 
-def looks_alike(points: np.ndarray, rgb: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, dist: float,
-                tol: float) -> float:
-    """How alike the template looks under two candidate poses: its colour score against itself moved by
-    ``T_a · T_b⁻¹`` (1 for the same pose; near 1 for a turn the template is symmetric under; low for a turn that
-    puts a one-sided detail on the other side).
-
-    Args:
-        points: (N, 3) template centres; rgb: (N, 3) their colours; T_a, T_b: (4, 4) source → template poses;
-        dist: distance under which two centres overlap; tol: mean absolute RGB difference under which they agree.
-    Returns:
-        the fraction of moved centres with an overlapping centre of the same colour, in [0, 1].
-    """
-    return _photometric_fitness(points, rgb, points, rgb, np.asarray(T_a) @ np.linalg.inv(np.asarray(T_b)), dist, tol)
-
-
-def _angle_between(T_a, T_b) -> float:
-    """Degrees of the rotation between two (4, 4) poses."""
-    R = np.asarray(T_a)[:3, :3] @ np.asarray(T_b)[:3, :3].T
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def ambiguous_rival(candidates: Sequence[dict], chosen: int, cfg: RegistrationConfig) -> Optional[int]:
-    """The index of the strongest rival that makes the chosen candidate ambiguous, or None (see
-    ``RegistrationConfig.rival_ratio``).
-
-    Args:
-        candidates: refined candidates with ``transform`` (4, 4), ``colour`` and ``looks_alike`` (against the
-            chosen one); chosen: the chosen index.
-    """
-    if cfg.rival_ratio <= 0.0:
-        return None
-    T_c, colour = candidates[chosen]["transform"], candidates[chosen]["colour"]
-    rivals = []
-    for k, c in enumerate(candidates):
-        if _angle_between(c["transform"], T_c) > cfg.rival_min_turn_deg and c["looks_alike"] < cfg.rival_max_alike and c["colour"] >= cfg.rival_ratio * colour:
-            rivals.append(k)
-    return max(rivals, key=lambda k: candidates[k]["colour"], default=None)
-
-
 def choose_candidate(
     fitness: Sequence[float], colour: Sequence[float], tiebreak: Sequence[tuple], cfg: RegistrationConfig,
 ) -> int:
@@ -717,16 +669,13 @@ def register_instance(
         at = choose_candidate([r[6] for r in refined], [r[0] for r in refined],
                               [(r[1], -r[2], -r[3]) for r in refined], cfg)
         score, n_inl, i, j, coarse, T, fit = refined[at]
-        dist = cfg.icp_max_distance_rel * radius
-        tried = [{"transform": r[5], "fitness": r[6], "colour": r[0], "inliers": r[1], "pair": (r[2], r[3]),
-                  "looks_alike": looks_alike(tpl_c, tpl_rgb, r[5], T, dist, cfg.color_tolerance)}
+        tried = [{"transform": r[5], "fitness": r[6], "colour": r[0], "inliers": r[1], "pair": (r[2], r[3])}
                  for r in refined]
     chosen_T = T
     T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
     if T is not chosen_T:  # polished: its fitness changed
         fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
-    rival = ambiguous_rival(tried, at, cfg) if cfg.select == "photometric" and ok else None
     if i < 0:
         msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
     else:
@@ -738,12 +687,6 @@ def register_instance(
         msg = (f"{_name(source)}: registration rejected (fitness {fit:.3f}, min {cfg.min_fitness}; "
                f"photometric fitness {score if score is not None else float('nan'):.3f}, "
                f"min {cfg.min_photometric_fitness})")
-    elif rival is not None:
-        turn = _angle_between(tried[rival]["transform"], tried[at]["transform"])
-        ok = False
-        msg = (f"{_name(source)}: registration ambiguous, not accepted (a pose turned {turn:.0f}° from the chosen "
-               f"one explains the colours nearly as well: {tried[rival]['colour']:.3f} against {score:.3f}, "
-               f"ratio over {cfg.rival_ratio})")
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
                               time.perf_counter() - t0, (i, j), coarse, T, tried)
 
