@@ -56,7 +56,7 @@ def registration_errors(
     Returns:
         {"per_instance": [{instance, gt_id, template, template_gt_id, success, rotation_error_deg,
         translation_error_rel, and where the entry has them proposed_rotation_error_deg (the pose chosen before the
-        acceptance test) and candidates [{rotation_error_deg, fitness, colour, inliers, pair, transform}]}], "skipped": [{instance, reason}], "num_registered", "num_success",
+        acceptance test) and candidates [{rotation_error_deg, fitness, colour, inliers, pair}]}], "skipped": [{instance, reason}], "num_registered", "num_success",
         "success_rate", and over the successful ones "rotation_error_deg_mean" / "_median",
         "translation_error_rel_mean" / "_median" (None when there is none)}. Templates registered to
         themselves are left out.
@@ -96,8 +96,7 @@ def registration_errors(
             rows[-1]["proposed_rotation_error_deg"] = error_of(entry["proposed_transform"])
         if entry.get("candidates"):
             rows[-1]["candidates"] = [{"rotation_error_deg": error_of(c["transform"]), "fitness": c.get("fitness"),
-                                       "colour": c.get("colour"), "inliers": c.get("inliers"), "pair": c.get("pair"),
-                                       "transform": np.asarray(c["transform"], dtype=np.float64).tolist()}
+                                       "colour": c.get("colour"), "inliers": c.get("inliers"), "pair": c.get("pair")}
                                       for c in entry["candidates"]]
     good = [r for r in rows if r["success"]]
 
