@@ -1,0 +1,147 @@
+"""Which registrations does the acceptance test refuse, and could another threshold tell right from wrong?
+
+Reads finished `splatreplace bench suite` runs of the dev split with the defaults: for every scene, the pipeline at
+the end of segmentation is loaded and registration runs again with the acceptance thresholds off, recording every
+candidate pose (ICP fitness, colour score, PnP inliers) and its rotation error against the ground truth (modulo the
+class's symmetry). Then each pair of thresholds (min ICP fitness, min colour score) is applied to the recorded
+candidates exactly as registration applies them (``choose_candidate``), and the table counts the poses it would
+accept and refuse, right (within 5° of the truth after the upright polish, or, for a candidate the run did not
+choose, within 10° before it) and wrong. "oracle" takes the right candidate whenever one was posed: what a
+perfect choice among the same candidates could reach. Writes one JSON.
+
+    python benchmarks/bench_acceptance.py --runs benchmarks/runs/suite --out benchmarks/results/acceptance_dev.json
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+import torch
+import tyro
+
+from splatreplace_ns.bench.register import load_pipeline
+from splatreplace_ns.bench.suite import DEV_SEEDS, WRONG_POSE_DEG
+from splatreplace_ns.register.pipeline import RegistrationConfig, choose_candidate
+
+SEGMENTATION_STEP = 1999  # end of the contrastive stage with the demo's budget (1500 + 500)
+CANDIDATE_RIGHT_DEG = 10.0  # a candidate before the upright polish, which brings a few degrees
+DEFAULTS = (RegistrationConfig.min_fitness, RegistrationConfig.min_photometric_fitness)
+
+
+@dataclass
+class BenchAcceptanceConfig:
+    runs: Path = Path("benchmarks/runs/suite")
+    """Folder of the suite's runs (one folder per scene and variant, each with result.json)."""
+    res: str = "96x72"
+    """Image size of the runs to read (their folder names carry it)."""
+    out: Path = Path("benchmarks/results/acceptance_dev.json")
+    thresholds: Tuple[Tuple[float, float], ...] = (DEFAULTS, (0.0, 0.0), (0.1, 0.05), (0.15, 0.1), (0.2, 0.05), (0.3, 0.15))
+    """(min ICP fitness, min colour score) pairs to tabulate; the first is the defaults."""
+
+
+def defaults_runs(cfg: BenchAcceptanceConfig) -> List[Tuple[int, Path]]:
+    """(seed, folder) of every dev-split run with the defaults at the demo's budget."""
+    pattern = re.compile(rf"random_(\d+)_{cfg.res}_\d+v\d+_1500-500-1000$")
+    runs = [(int(m.group(1)), p) for p in sorted(cfg.runs.iterdir()) if (m := pattern.match(p.name))]
+    return [(seed, p) for seed, p in runs if seed in DEV_SEEDS and (p / "result.json").exists()]
+
+
+def record_candidates(run: Path) -> Dict:
+    """Registration of the run's segmented scene with the thresholds off; the report of every instance with its
+    candidates scored against the truth. → {"per_instance": [...], "time_s"}."""
+    from splatreplace_ns.eval.report import registration_report
+
+    pipeline = load_pipeline(run / "ours/splat-replace/run/config.yml", SEGMENTATION_STEP)
+    pipeline.config.registration = replace(pipeline.config.registration, min_fitness=0.0, min_photometric_fitness=0.0)
+    start = time.perf_counter()
+    with torch.no_grad():
+        pipeline.run_registration()
+    seconds = time.perf_counter() - start
+    report, why = registration_report(pipeline)
+    if report is None:
+        raise RuntimeError(f"{run}: no registration report ({why})")
+    return {"per_instance": report["per_instance"], "time_s": seconds}
+
+
+def decide(candidates: List[Dict], proposed_error: float, min_fitness: float, min_colour: float) -> Tuple[bool, float]:
+    """What registration with these thresholds does with these candidates → (accepted, the pose's rotation error).
+
+    The candidate chosen with the thresholds off carries the polished pose's error; another one its own."""
+    cfg = replace(RegistrationConfig(), min_fitness=min_fitness, min_photometric_fitness=min_colour)
+    fitness = [c["fitness"] for c in candidates]
+    colour = [c["colour"] for c in candidates]
+    tiebreak = [(c["inliers"], -c["pair"][0], -c["pair"][1]) for c in candidates]
+    at = choose_candidate(fitness, colour, tiebreak, cfg)
+    unconstrained = choose_candidate(fitness, colour, tiebreak, replace(cfg, min_fitness=0.0, min_photometric_fitness=0.0))
+    same = candidates[at]["rotation_error_deg"] == candidates[unconstrained]["rotation_error_deg"]
+    error = proposed_error if same else candidates[at]["rotation_error_deg"]
+    return fitness[at] >= min_fitness and colour[at] >= min_colour, error
+
+
+def tabulate(instances: List[Dict], thresholds) -> List[Dict]:
+    rows = []
+    for min_fitness, min_colour in thresholds:
+        row = {"min_fitness": min_fitness, "min_colour": min_colour, "accepted_right": 0, "accepted_wrong": 0,
+               "refused_right": 0, "refused_wrong": 0}
+        for inst in instances:
+            ok, error = decide(inst["candidates"], inst["proposed_rotation_error_deg"], min_fitness, min_colour)
+            limit = WRONG_POSE_DEG if error == inst["proposed_rotation_error_deg"] else CANDIDATE_RIGHT_DEG
+            row[("accepted_" if ok else "refused_") + ("right" if error <= limit else "wrong")] += 1
+        rows.append(row)
+    oracle = sum(any(c["rotation_error_deg"] <= CANDIDATE_RIGHT_DEG for c in i["candidates"])
+                 or i["proposed_rotation_error_deg"] <= WRONG_POSE_DEG for i in instances)
+    rows.append({"min_fitness": "oracle", "min_colour": "oracle", "accepted_right": oracle, "accepted_wrong": 0,
+                 "refused_right": 0, "refused_wrong": len(instances) - oracle})
+    return rows
+
+
+def main(cfg: BenchAcceptanceConfig) -> Dict:
+    scenes, instances = {}, []
+    for seed, run in defaults_runs(cfg):
+        record = record_candidates(run)
+        gains = json.loads((run / "result.json").read_text())["row"]["per_instance"]
+        for r in record["per_instance"]:
+            if not r.get("candidates"):
+                continue
+            cands = r["candidates"]
+            best = cands[choose_candidate([c["fitness"] for c in cands], [c["colour"] for c in cands],
+                                          [(c["inliers"], -c["pair"][0], -c["pair"][1]) for c in cands],
+                                          replace(RegistrationConfig(), min_fitness=0.0, min_photometric_fitness=0.0))]
+            right = [c for c in r["candidates"] if c["rotation_error_deg"] <= CANDIDATE_RIGHT_DEG]
+            best_right = max(right, key=lambda c: c["colour"], default=None)
+            instances.append({
+                "seed": seed, "instance": r["instance"], "proposed_rotation_error_deg": r["proposed_rotation_error_deg"],
+                "fitness": best["fitness"], "colour": best["colour"],
+                "best_right_candidate": None if best_right is None else {k: best_right[k] for k in ("fitness", "colour")},
+                "gain_with_the_defaults": gains.get(str(r["instance"]), {}).get("gain"),
+                "candidates": [{k: c[k] for k in ("rotation_error_deg", "fitness", "colour", "inliers", "pair")}
+                               for c in r["candidates"]],
+            })
+        scenes[seed] = {"registration_s": record["time_s"], "instances": sum(i["seed"] == seed for i in instances)}
+        print(f"seed {seed}: {scenes[seed]['instances']} registered instances, {record['time_s']:.1f} s", flush=True)
+    rows = tabulate(instances, cfg.thresholds)
+    print(f"\n{'min fitness':>11} {'min colour':>10} | accepted right / wrong | refused right / wrong")
+    for r in rows:
+        print(f"{r['min_fitness']!s:>11} {r['min_colour']!s:>10} | {r['accepted_right']:>14} / {r['accepted_wrong']:<5} |"
+              f" {r['refused_right']:>13} / {r['refused_wrong']}")
+    print("\nper instance (seed, instance, pose error after the polish, its fitness / colour, best right candidate's):")
+    for i in instances:
+        right = i["best_right_candidate"]
+        print(f"  {i['seed']:>2} {i['instance']:>3} {i['proposed_rotation_error_deg']:7.1f}°  {i['fitness']:.3f} / "
+              f"{i['colour']:.3f}  " + ("none posed" if right is None else f"{right['fitness']:.3f} / {right['colour']:.3f}"))
+    result = {"benchmark": "acceptance", "split": "dev", "res": cfg.res, "seeds": sorted(scenes), "scenes": scenes,
+              "right_deg": {"chosen_after_polish": WRONG_POSE_DEG, "other_candidate": CANDIDATE_RIGHT_DEG},
+              "table": rows, "instances": instances}
+    cfg.out.parent.mkdir(parents=True, exist_ok=True)
+    cfg.out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {cfg.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(BenchAcceptanceConfig))
