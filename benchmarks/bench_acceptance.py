@@ -24,6 +24,7 @@ from typing import Dict, List, Tuple
 import torch
 import tyro
 
+from splatreplace_ns.bench.output import write_result_json
 from splatreplace_ns.bench.register import load_pipeline
 from splatreplace_ns.bench.suite import DEV_SEEDS, WRONG_POSE_DEG
 from splatreplace_ns.register.pipeline import RegistrationConfig, choose_candidate
@@ -137,9 +138,7 @@ def main(cfg: BenchAcceptanceConfig) -> Dict:
     result = {"benchmark": "acceptance", "split": "dev", "res": cfg.res, "seeds": sorted(scenes), "scenes": scenes,
               "right_deg": {"chosen_after_polish": WRONG_POSE_DEG, "other_candidate": CANDIDATE_RIGHT_DEG},
               "table": rows, "instances": instances}
-    cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    cfg.out.write_text(json.dumps(result, indent=1))
-    print(f"wrote {cfg.out}")
+    write_result_json(result, cfg.out)
     return result
 
 
