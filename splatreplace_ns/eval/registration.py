@@ -56,7 +56,8 @@ def registration_errors(
     Returns:
         {"per_instance": [{instance, gt_id, template, template_gt_id, success, rotation_error_deg,
         translation_error_rel, and where the entry has them proposed_rotation_error_deg (the pose chosen before the
-        acceptance test) and candidates [{rotation_error_deg, fitness, colour, inliers, pair}]}], "skipped": [{instance, reason}], "num_registered", "num_success",
+        acceptance test) and candidates [{rotation_error_deg, fitness, colour, inliers, pair}]}],
+        "skipped": [{instance, reason}], "num_registered", "num_success",
         "success_rate", and over the successful ones "rotation_error_deg_mean" / "_median",
         "translation_error_rel_mean" / "_median" (None when there is none)}. Templates registered to
         themselves are left out.
