@@ -69,19 +69,24 @@ def record_candidates(run: Path) -> Dict:
     return {"per_instance": report["per_instance"], "time_s": seconds}
 
 
-def decide(candidates: List[Dict], proposed_error: float, min_fitness: float, min_colour: float) -> Tuple[bool, float]:
-    """What registration with these thresholds does with these candidates → (accepted, the pose's rotation error).
+def decide(candidates: List[Dict], proposed_error: float, min_fitness: float,
+           min_colour: float) -> Tuple[bool, float, float]:
+    """What registration with these thresholds does with these candidates → (accepted, the pose's rotation error,
+    the error under which it counts as right).
 
-    The candidate chosen with the thresholds off carries the polished pose's error; another one its own."""
+    The candidate chosen with the thresholds off is the proposed pose: it carries the polished pose's error and is
+    right within WRONG_POSE_DEG; another one carries its own error before the polish, right within
+    CANDIDATE_RIGHT_DEG."""
     cfg = replace(RegistrationConfig(), min_fitness=min_fitness, min_photometric_fitness=min_colour)
     fitness = [c["fitness"] for c in candidates]
     colour = [c["colour"] for c in candidates]
     tiebreak = [(c["inliers"], -c["pair"][0], -c["pair"][1]) for c in candidates]
     at = choose_candidate(fitness, colour, tiebreak, cfg)
-    unconstrained = choose_candidate(fitness, colour, tiebreak, replace(cfg, min_fitness=0.0, min_photometric_fitness=0.0))
-    same = candidates[at]["rotation_error_deg"] == candidates[unconstrained]["rotation_error_deg"]
-    error = proposed_error if same else candidates[at]["rotation_error_deg"]
-    return fitness[at] >= min_fitness and colour[at] >= min_colour, error
+    proposed = choose_candidate(fitness, colour, tiebreak, replace(cfg, min_fitness=0.0, min_photometric_fitness=0.0))
+    accepted = fitness[at] >= min_fitness and colour[at] >= min_colour
+    if at == proposed:
+        return accepted, proposed_error, WRONG_POSE_DEG
+    return accepted, candidates[at]["rotation_error_deg"], CANDIDATE_RIGHT_DEG
 
 
 def tabulate(instances: List[Dict], thresholds) -> List[Dict]:
@@ -90,8 +95,7 @@ def tabulate(instances: List[Dict], thresholds) -> List[Dict]:
         row = {"min_fitness": min_fitness, "min_colour": min_colour, "accepted_right": 0, "accepted_wrong": 0,
                "refused_right": 0, "refused_wrong": 0}
         for inst in instances:
-            ok, error = decide(inst["candidates"], inst["proposed_rotation_error_deg"], min_fitness, min_colour)
-            limit = WRONG_POSE_DEG if error == inst["proposed_rotation_error_deg"] else CANDIDATE_RIGHT_DEG
+            ok, error, limit = decide(inst["candidates"], inst["proposed_rotation_error_deg"], min_fitness, min_colour)
             row[("accepted_" if ok else "refused_") + ("right" if error <= limit else "wrong")] += 1
         rows.append(row)
     oracle = sum(any(c["rotation_error_deg"] <= CANDIDATE_RIGHT_DEG for c in i["candidates"])
