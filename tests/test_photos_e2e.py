@@ -243,6 +243,9 @@ def test_ns_train_runs_the_method_from_the_photos(capture, tmp_path):
     for k, click in enumerate(clicks):
         assert re.search(rf"instance \d+ \({classes[click['id']]}\): \d+ Gaussians from click {k}\b", log), (k, stages)
     assert re.search(rf"registration: {len(clicks)} instances in {len(set(classes.values()))} classes", log)
+    # posed copies' candidates are judged against the photos (chosen, or left as it was when ambiguous)
+    assert re.search(r"instance \d+: (not replaced: )?candidate \d+|instance \d+: not seen in any training", log), \
+        log[-3000:]
     shared = re.search(r"shared templates: (\d+) classes, (\d+) instances", log)
     # at this budget the instances are small (tens of Gaussians): at least one is registered and replaced
     assert shared and int(shared.group(1)) == 1 and int(shared.group(2)) >= 1, log[-3000:]

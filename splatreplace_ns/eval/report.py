@@ -257,12 +257,15 @@ def registration_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
 
 
 def replacement_report(model) -> Dict[str, Dict]:
-    """Per instance: whether it was replaced by its class template and why (registration, the check of its
-    pose against the training images and the check after fine-tuning); empty before registration. Needs no
-    ground truth."""
+    """Per instance: whether it was replaced by its class template and why (registration, the choice of its
+    pose against the training images, the optional pose check and the check after fine-tuning); empty before
+    registration. Needs no ground truth."""
     out = {}
     for iid, entry in sorted((getattr(model, "registration", None) or {}).items()):
         row = {"replaced": bool(entry.get("success")), "why": entry.get("message", "")}
+        if "image_choice" in entry:
+            row["pose_choice"] = {k: entry["image_choice"].get(k)
+                                  for k in ("chosen", "rival", "margin_db", "psnr_own", "views", "accepted")}
         if "gate" in entry:
             row["pose_check"] = {k: entry["gate"].get(k) for k in ("psnr_own", "psnr_pose", "psnr_best_turn", "best_turn_deg")}
         if "check_after_finetune" in entry:

@@ -27,12 +27,13 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.progress import track
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.masks.command import ClickMasksConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.render import world_to_camera
-from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, with_floor_up_axis
+from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, polish_chosen, with_floor_up_axis
 from splatreplace_ns.segment.carving import carve_mask, carved_instance
 from splatreplace_ns.datamanager.validate import image_size
 from splatreplace_ns.segment.clicks import (
@@ -43,7 +44,7 @@ from splatreplace_ns.segment.instances import InstanceSelection, SelectionError,
 from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
 from splatreplace_ns.segment.voting import Votes, snap_query, vote_training_views, voted_features, votes_from_labels
 from splatreplace_ns.segment.voting import background_query as voting_background_query
-from splatreplace_ns.register.gate import ReplacementGateConfig, gate_registrations
+from splatreplace_ns.register.gate import ReplacementGateConfig, choose_pose, gate_registrations, instance_id_maps
 from splatreplace_ns.template.revert import RevertGateConfig, revert_instances, score_replaced_instances
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.rays import ray_camera
@@ -691,9 +692,59 @@ class SplatReplacePipeline(VanillaPipeline):
         for iid, r in results.items():
             colour = "" if r.success else "[bold yellow]"
             CONSOLE.log(f"{colour}{r.message} ({r.time_s:.1f} s)")
-        self.registration_report = {"time_s": time.perf_counter() - start, "failures": [i for i, r in results.items() if not r.success],
-                                    "up_axis": [float(v) for v in config.up_axis]}
+        choice_s = None
+        if config.image_choice and config.select == "photometric":
+            choice_s = self.choose_poses_by_images(instances, config)
+        self.registration_report = {
+            "time_s": time.perf_counter() - start, "up_axis": [float(v) for v in config.up_axis],
+            "failures": [i for i, entry in model.registration.items() if not entry["success"]],
+            "image_choice_s": choice_s,
+        }
         return model.registration
+
+    @torch.no_grad()
+    def choose_poses_by_images(self, instances: Dict[int, InstanceGaussians], config: RegistrationConfig) -> float:
+        """Chooses each registered instance's pose among its candidates by how well the template placed under it
+        explains the instance's training pixels (``splatreplace_ns.register.gate.choose_pose``), then polishes it
+        as registration polishes its own choice; an ambiguous choice leaves the instance as it was. An instance seen
+        in no training view keeps registration's decision. Returns the seconds it took."""
+        start = time.perf_counter()
+        model = self.model
+        was_training = model.training
+        model.eval()
+        scene, labels, images, render = self.pose_check_inputs()
+        labels = labels.to(scene["means"].device)
+        rgb_before, id_maps = instance_id_maps(scene, labels, range(len(images)), render)
+        for iid, entry in track(list(model.registration.items()), description="choosing poses against the training images",
+                                transient=True):
+            anchor = int(entry["template"])
+            if anchor == int(iid) or not entry["candidates"]:
+                continue
+            choice = choose_pose(scene, labels, int(iid), anchor, [c["transform"] for c in entry["candidates"]],
+                                 images, render, id_maps, rgb_before, config.image_margin_db, config.image_rival_deg,
+                                 config.image_views)
+            entry["image_choice"] = choice.as_dict()
+            if choice.chosen is None:
+                CONSOLE.log(f"instance {iid}: {choice.reason}; registration's decision stands")
+                continue
+            chosen = entry["candidates"][choice.chosen]
+            T, fitness, note = polish_chosen(instances[int(iid)], instances[anchor], np.asarray(chosen["transform"]),
+                                             config)
+            if note and not np.allclose(T, chosen["transform"]):  # the polish is kept where the images agree
+                check = choose_pose(scene, labels, int(iid), anchor, [chosen["transform"], T], images, render, id_maps,
+                                    rgb_before, 0.0, 180.0, config.image_views)
+                if check.chosen == 0:
+                    T, fitness = np.asarray(chosen["transform"]), chosen["fitness"]
+                    note = " (the upright polish explains the training pixels worse: not kept)"
+            entry["proposed_transform"] = np.asarray(T).tolist()
+            entry["success"] = bool(choice.accepted)
+            entry["transform"] = np.asarray(T if choice.accepted else np.eye(4)).tolist()
+            entry["fitness"] = float(fitness)
+            entry["message"] = (f"instance {iid}: " + ("" if choice.accepted else "not replaced: ")
+                                + f"candidate {choice.chosen} {choice.reason}{note}")
+            CONSOLE.log(("" if choice.accepted else "[bold yellow]") + entry["message"])
+        model.train(was_training)
+        return time.perf_counter() - start
 
     @torch.no_grad()
     def build_shared_templates(self, start_step: int) -> None:
@@ -767,16 +818,12 @@ class SplatReplacePipeline(VanillaPipeline):
         """Instances registration or its pose check left as they were."""
         return [int(i) for i, r in (getattr(self.model, "registration", None) or {}).items() if not r.get("success")]
 
-    @torch.no_grad()
-    def gate_poses(self, transforms: Dict[int, torch.Tensor], templates: Dict[str, int], classes: Dict[int, str]) -> List[int]:
-        """Checks each registered pose against the training images (``splatreplace_ns.register.gate``). A better
-        turn found there replaces the pose in ``transforms``; returns the instances refused, which are marked as
-        not registered and stay as they are."""
-        start = time.perf_counter()
+    def pose_check_inputs(self):
+        """What a pose is checked against the training images with (``splatreplace_ns.register.gate``): the scene
+        as carving leaves it, whichever instances are replaced → (Gaussians with ``GAUSSIAN_KEYS``, [N] instance
+        labels, training images, render function ``(view, Gaussians, extra) → (rgb, extra)``)."""
         model = self.model
-        was_training = model.training
-        model.eval()
-        keep = self.leftover_owner() == 0  # the scene as carving leaves it, whichever instances are replaced
+        keep = self.leftover_owner() == 0
         scene = {
             "means": model.means.detach()[keep], "quats": model.quats.detach()[keep],
             "log_scales": model.scales.detach()[keep], "logit_opacities": model.opacities.detach()[keep],
@@ -788,9 +835,20 @@ class SplatReplacePipeline(VanillaPipeline):
         def render(view: int, gaussians: Dict[str, torch.Tensor], extra: torch.Tensor):
             return model.render_gaussian_set(cameras[view : view + 1], gaussians, extra)
 
+        return scene, model.instance_labels[keep.cpu()], images, render
+
+    @torch.no_grad()
+    def gate_poses(self, transforms: Dict[int, torch.Tensor], templates: Dict[str, int], classes: Dict[int, str]) -> List[int]:
+        """Checks each registered pose against the training images (``splatreplace_ns.register.gate``). A better
+        turn found there replaces the pose in ``transforms``; returns the instances refused, which are marked as
+        not registered and stay as they are."""
+        start = time.perf_counter()
+        model = self.model
+        was_training = model.training
+        model.eval()
+        scene, labels, images, render = self.pose_check_inputs()
         up = self.registration_report.get("up_axis", self.config.registration.up_axis)
-        scores = gate_registrations(scene, model.instance_labels[keep.cpu()], classes, transforms, templates, images,
-                                    render, up, self.config.gate)
+        scores = gate_registrations(scene, labels, classes, transforms, templates, images, render, up, self.config.gate)
         model.train(was_training)
         refused = []
         for iid, score in scores.items():

@@ -212,6 +212,154 @@ def instance_id_maps(scene: Mapping[str, Tensor], labels: Tensor, views: Sequenc
     return rgbs, id_maps
 
 
+def instance_views(id_maps: Mapping[int, Tensor], instance: int, max_views: int, min_pixels: int) -> List[int]:
+    """The (at most ``max_views``) views where ``instance`` covers the most pixels, at least ``min_pixels``."""
+    counts = {v: int((m == instance).sum()) for v, m in id_maps.items()}
+    return [v for v in sorted(counts, key=counts.get, reverse=True) if counts[v] >= min_pixels][:max_views]
+
+
+def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, poses: Sequence[Tensor],
+                   images: Sequence[Tensor], render: RenderFn, views: Sequence[int], id_maps: Mapping[int, Tensor],
+                   rgb_before: Mapping[int, Tensor]) -> Tuple[float, List[float], int]:
+    """How well instance ``instance``'s training pixels are explained by its own Gaussians and by the template
+    instance ``anchor``'s Gaussians placed under each pose, with the rest of the scene around them.
+
+    The compared pixels are the same for every pose: those the instance covers in the scene as it is, or any
+    placed copy covers (weight ≥ 0.5), in ``views``. PSNR after a per-channel gain (:func:`colour_fitted`).
+
+    Args:
+        scene: Gaussians (N) with GAUSSIAN_KEYS; labels: [N] long instance ids.
+        poses: each [4, 4], template → instance (world).
+        images: training images [H, W, 3] (float in [0, 1] or uint8); views: the view indices to compare.
+        id_maps, rgb_before: from :func:`instance_id_maps` (which instance each pixel shows, the scene's render).
+    Returns:
+        (PSNR by the own Gaussians, [PSNR under each pose], number of compared pixels).
+    """
+    rest = _subset(scene, labels != instance)
+    template = _subset(scene, labels == anchor)
+    candidates = [_placed(template, p) for p in poses]
+    marker = torch.cat((torch.zeros(len(rest["means"]), 1), torch.ones(len(template["means"]), 1)))
+    marker = marker.to(scene["means"])
+    own_px: List[Tensor] = []
+    target_px: List[Tensor] = []
+    cand_px: List[List[Tensor]] = [[] for _ in candidates]
+    for v in views:
+        renders = [render(v, _cat(rest, c), marker) for c in candidates]
+        footprint = id_maps[v] == instance
+        for _, weight in renders:
+            footprint = footprint | (weight[..., 0] >= 0.5)
+        target = images[v][..., :3]  # an RGBA capture's alpha is not compared
+        target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
+        target_px.append(target[footprint])
+        own_px.append(rgb_before[v][footprint].float())
+        for k, (rgb, _) in enumerate(renders):
+            cand_px[k].append(rgb[footprint].float())
+    target_all = torch.cat(target_px)
+    own = psnr(colour_fitted(torch.cat(own_px), target_all), target_all)
+    return own, [psnr(colour_fitted(torch.cat(px), target_all), target_all) for px in cand_px], int(target_all.shape[0])
+
+
+@dataclass
+class PoseChoice:
+    """Which candidate pose explains instance ``instance_id``'s training pixels best (:func:`choose_pose`)."""
+
+    instance_id: int
+    template_id: int
+    chosen: Optional[int]
+    """Index of the chosen candidate (None: not seen in any training view, nothing was compared)."""
+    rival: Optional[int]
+    """Index of the best candidate turned more than the rival angle from the chosen one (None: no such one)."""
+    psnr_own: Optional[float]
+    """dB, by the instance's own Gaussians (the scene as it is), for reference."""
+    scores: List[Optional[float]]
+    """dB, with the template placed under each candidate (after the per-channel gain)."""
+    views: int
+    pixels: int
+    accepted: bool
+    reason: str
+
+    @property
+    def margin_db(self) -> Optional[float]:
+        if self.chosen is None:
+            return None
+        return math.inf if self.rival is None else self.scores[self.chosen] - self.scores[self.rival]
+
+    def as_dict(self) -> Dict:
+        out = asdict(self)
+        margin = self.margin_db
+        out["margin_db"] = None if margin is None or math.isinf(margin) else margin
+        return out
+
+
+def rotation_angle_deg(a: Tensor, b: Tensor) -> float:
+    """Geodesic angle (degrees) between the rotation parts of two [4, 4] (or [3, 3]) transforms.
+
+    From ``‖Ra − Rb‖_F = 2√2 · sin(θ / 2)``, which stays accurate for small angles (the trace formula does not)."""
+    chord = float(torch.linalg.norm(a[:3, :3].double() - b[:3, :3].double())) / (2.0 * math.sqrt(2.0))
+    return math.degrees(2.0 * math.asin(min(1.0, chord)))
+
+
+def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], margin_db: float,
+                     rival_deg: float) -> Tuple[int, Optional[int], bool]:
+    """The best-scoring candidate, its best rival (turned more than ``rival_deg`` from it) and whether it wins
+    by at least ``margin_db``.
+
+    Args:
+        scores: (C,) PSNR per candidate (higher explains better); transforms: (C,) [4, 4] poses.
+    Returns:
+        (chosen index, rival index or None, accepted).
+    """
+    chosen = max(range(len(scores)), key=lambda k: scores[k])
+    rivals = [k for k in range(len(scores)) if rotation_angle_deg(transforms[k], transforms[chosen]) > rival_deg]
+    rival = max(rivals, key=lambda k: scores[k], default=None)
+    accepted = rival is None or scores[chosen] - scores[rival] >= margin_db
+    return chosen, rival, accepted
+
+
+def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int,
+                candidates: Sequence[Tensor], images: Sequence[Tensor], render: RenderFn,
+                id_maps: Mapping[int, Tensor], rgb_before: Mapping[int, Tensor], margin_db: float,
+                rival_deg: float, max_views: int, min_pixels: int = 16) -> PoseChoice:
+    """Analysis by synthesis: each candidate pose of ``instance`` is judged by rendering the template instance
+    ``anchor`` in its place, with the rest of the scene, into the training views that show the instance most, and
+    comparing with the training images (:func:`explain_scores`). The best-explaining candidate is chosen; it is
+    accepted only when no rival turned more than ``rival_deg`` from it explains the pixels within ``margin_db``
+    (otherwise the pose is ambiguous and the instance stays as it was).
+
+    Args:
+        candidates: (C,) [4, 4] transforms, template ≈ T · instance (world), as registration stores them.
+        id_maps, rgb_before: from :func:`instance_id_maps` over every training view.
+    Returns:
+        :class:`PoseChoice` (candidates with the same transform are rendered once).
+    """
+    views = instance_views(id_maps, instance, max_views, min_pixels)
+    if not candidates or not views:
+        why = "no candidate pose" if not candidates else "not seen in any training view: nothing to compare"
+        return PoseChoice(instance, anchor, None, None, None, [None] * len(candidates), len(views), 0, False, why)
+    transforms = [torch.as_tensor(T, dtype=torch.float32) for T in candidates]
+    unique: List[int] = []  # ICP brings many starts to the very same pose
+    same_as: List[int] = []
+    for k, T in enumerate(transforms):
+        match = next((u for u, j in enumerate(unique) if torch.allclose(T, transforms[j], atol=1e-5)), None)
+        if match is None:
+            unique.append(k)
+            match = len(unique) - 1
+        same_as.append(match)
+    poses = [torch.linalg.inv(transforms[j]) for j in unique]  # template → instance
+    own, unique_scores, pixels = explain_scores(scene, labels, instance, anchor, poses, images, render, views,
+                                                id_maps, rgb_before)
+    scores = [unique_scores[u] for u in same_as]
+    chosen, rival, accepted = pick_with_margin(scores, transforms, margin_db, rival_deg)
+    if rival is None:
+        reason = "is the only pose among the candidates"
+    else:
+        gap = scores[chosen] - scores[rival]
+        turn = rotation_angle_deg(transforms[chosen], transforms[rival])
+        reason = (f"explains its training pixels {gap:.2f} dB better than the best pose turned {turn:.0f}° from it "
+                  f"(margin {margin_db:g} dB)" + ("" if accepted else ": ambiguous, left as it was"))
+    return PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, reason)
+
+
 def gate_registrations(
     scene: Mapping[str, Tensor],
     labels: Tensor,
@@ -248,13 +396,11 @@ def gate_registrations(
     out: Dict[int, GateScore] = {}
     for i in checked:
         anchor = int(templates[classes[i]])
-        counts = {v: int((m == i).sum()) for v, m in id_maps.items()}
-        views = [v for v in sorted(counts, key=counts.get, reverse=True) if counts[v] >= cfg.min_pixels][: cfg.max_views]
+        views = instance_views(id_maps, i, cfg.max_views, cfg.min_pixels)
         if not views:
             passed, reason = judge(None, None, None, cfg)
             out[i] = GateScore(i, anchor, None, None, None, None, 0, 0, passed, reason)
             continue
-        rest = _subset(scene, labels != i)
         template = _subset(scene, labels == anchor)
         pose = torch.linalg.inv(torch.as_tensor(transforms[i], dtype=torch.float32))  # template → instance i
         poses = [pose] + [
@@ -262,26 +408,7 @@ def gate_registrations(
                         cfg.icp_distance)
             for k in range(1, cfg.turns)
         ]
-        candidates = [_placed(template, p) for p in poses]
-        copy = candidates[0]
-        marker = torch.cat((torch.zeros(len(rest["means"]), 1), torch.ones(len(copy["means"]), 1))).to(copy["means"])
-        own_px: List[Tensor] = []
-        target_px: List[Tensor] = []
-        cand_px: List[List[Tensor]] = [[] for _ in candidates]
-        for v in views:
-            renders = [render(v, _cat(rest, c), marker) for c in candidates]
-            footprint = id_maps[v] == i
-            for _, weight in renders:
-                footprint = footprint | (weight[..., 0] >= 0.5)
-            target = images[v][..., :3]  # an RGBA capture's alpha is not compared
-            target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
-            target_px.append(target[footprint])
-            own_px.append(rgb_before[v][footprint].float())
-            for k, (rgb, _) in enumerate(renders):
-                cand_px[k].append(rgb[footprint].float())
-        target_all = torch.cat(target_px)
-        own = psnr(colour_fitted(torch.cat(own_px), target_all), target_all)
-        scores = [psnr(colour_fitted(torch.cat(px), target_all), target_all) for px in cand_px]
+        own, scores, pixels = explain_scores(scene, labels, i, anchor, poses, images, render, views, id_maps, rgb_before)
         best_k = max(range(1, len(scores)), key=lambda k: scores[k], default=None)
         best_turn = None if best_k is None else scores[best_k]
         passed, reason = judge(own, scores[0], best_turn, cfg)
@@ -289,6 +416,6 @@ def gate_registrations(
         if passed and best_turn is not None and best_turn > scores[0] + cfg.margin_turn_db:
             adopted = torch.linalg.inv(poses[best_k]).tolist()
         out[i] = GateScore(i, anchor, own, scores[0], best_turn,
-                           None if best_k is None else 360.0 * best_k / cfg.turns, len(views), int(target_all.shape[0]),
+                           None if best_k is None else 360.0 * best_k / cfg.turns, len(views), pixels,
                            passed, reason, adopted)
     return out

@@ -116,6 +116,15 @@ class RegistrationConfig:
             worse (office's segmented chair 5: 178° off, fitness 0.535 against 0.680 for its right pose). 0: the
             colour score alone (bench register, row ``no_shape_first``).
         seed: RANSAC seed.
+        image_choice: with select="photometric" and the training images at hand (the method's pipeline), every
+            refined candidate is rendered into the instance's training views with the template in its place and
+            the best-explaining one is chosen (``splatreplace_ns.register.gate.choose_pose``); that choice
+            replaces the one above and the acceptance thresholds (``min_fitness``, ``min_photometric_fitness``).
+        image_margin_db: the chosen candidate must explain the training pixels this much better (PSNR, dB) than
+            the best rival turned more than ``image_rival_deg`` from it; otherwise the pose is ambiguous and the
+            instance stays as it was.
+        image_rival_deg: candidates closer than this to the chosen one are the same pose, not rivals.
+        image_views: training views compared per instance (those where it covers the most pixels).
     """
 
     n_azimuth: int = 5
@@ -152,6 +161,10 @@ class RegistrationConfig:
     upright_max_tilt_deg: float = 15.0
     colour_fitness_ratio: float = 0.85
     seed: int = 0
+    image_choice: bool = True
+    image_margin_db: float = 1.0
+    image_rival_deg: float = 20.0
+    image_views: int = 6
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -467,6 +480,25 @@ def refine_from(source: InstanceGaussians, template: InstanceGaussians, init: np
     if polished is not T:
         fit = _fitness(src_c, tpl_c, polished, cfg.icp_max_distance_rel * radius)
     return polished, fit, note
+
+
+def polish_chosen(source: InstanceGaussians, template: InstanceGaussians, T: np.ndarray,
+                  cfg: Optional[RegistrationConfig] = None) -> tuple[np.ndarray, float, str]:
+    """What :func:`register_instance` does to the refined candidate it chose: the upright polish about the floor's
+    normal on the solid centres (no new ICP: the candidate is already ICP's result).
+
+    Args:
+        source, template: the two instances; T: (4, 4) refined candidate, template ≈ T · source; cfg: settings.
+    Returns:
+        (T (4, 4), its fitness, the polish's note for the log).
+    """
+    cfg = cfg or RegistrationConfig()
+    _, radius = instance_sphere(template)
+    src_c = source.centres()[source.solid(cfg.min_opacity, cfg.min_solid_points)]
+    tpl_c = template.centres()[template.solid(cfg.min_opacity, cfg.min_solid_points)]
+    T = np.asarray(T, dtype=np.float64)
+    polished, note = _upright_polish(src_c, tpl_c, T, radius, cfg)
+    return polished, _fitness(src_c, tpl_c, polished, cfg.icp_max_distance_rel * radius), note
 
 
 _SH_C0 = 0.28209479177387814

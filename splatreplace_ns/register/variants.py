@@ -20,6 +20,7 @@ PAPER_REGISTRATION: Mapping[str, object] = {
     "min_opacity": 0.0,  # on every centre
     "upright": False,  # full rigid ICP
     "min_fitness": 0.0,  # every registration is accepted
+    "image_choice": False,  # nothing is compared with the training images
 }
 """Settings of §4.2 as written (the paper's MASt3R is replaced by the default matcher, which has offline weights)."""
 
@@ -30,6 +31,7 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "no_shape_first": {"colour_fitness_ratio": 0.0},  # the colour score chooses among every acceptable candidate
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
     "no_icp": {"icp": False},
+    "no_image_choice": {"image_choice": False},  # the colour score chooses, the thresholds accept
 }
 """Variant name → the settings it changes from the defaults."""
 
