@@ -47,3 +47,32 @@ def test_thresholds_choose_and_refuse_like_registration(bench):
     assert strip(rows[0]) == (0, 1, 1, 1)
     assert strip(rows[1]) == (1, 2, 0, 0)
     assert rows[2]["min_fitness"] == "oracle" and strip(rows[2]) == (2, 0, 0, 1)  # a right candidate for two of three
+
+
+def test_the_choice_against_the_images_is_tabulated_with_its_margin(bench):
+    import math
+
+    import torch
+
+    from splatreplace_ns.register.gate import yaw_rotation
+
+    def turned(deg):
+        return yaw_rotation(torch.tensor([0.0, 0.0, 1.0]), math.radians(deg), torch.zeros(3)).tolist()
+
+    def scored(error, psnr, deg, fitness=0.3, colour=0.2):
+        return {**cand(error, fitness, colour), "image_psnr": psnr, "transform": turned(deg)}
+
+    instances = [
+        # the truth explains the images 2 dB better than the flip: right at every margin up to 2 dB
+        {"candidates": [scored(179.0, 15.0, 180.0), scored(1.0, 17.0, 0.0)], "proposed_rotation_error_deg": 178.5},
+        # a flip that explains them 0.5 dB better: accepted (wrong) at 0, ambiguous (refused) at 1 dB
+        {"candidates": [scored(2.0, 18.0, 0.0), scored(178.0, 18.5, 180.0)], "proposed_rotation_error_deg": 1.0},
+        # seen in no training view: the thresholds decide (the defaults accept this right pose)
+        {"candidates": [{**cand(0.5, 0.4, 0.3), "image_psnr": None, "transform": turned(0.0)}],
+         "proposed_rotation_error_deg": 0.5},
+    ]
+    rows = bench.tabulate_image_choice(instances, (0.0, 1.0, 3.0), rival_deg=20.0)
+    strip = lambda r: (r["accepted_right"], r["accepted_wrong"], r["refused_right"], r["refused_wrong"])  # noqa: E731
+    assert strip(rows[0]) == (2, 1, 0, 0)
+    assert strip(rows[1]) == (2, 0, 0, 1)
+    assert strip(rows[2]) == (1, 0, 1, 1)

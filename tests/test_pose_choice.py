@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from splatreplace_ns.register.gate import (
-    choose_pose, instance_id_maps, pick_with_margin, rotation_angle_deg, yaw_rotation,
+    choose_pose, instance_id_maps, pick_with_margin, yaw_rotation,
 )
 from splatreplace_ns.register.variants import registration_variant
 from splatreplace_ns.register.pipeline import RegistrationConfig
@@ -26,29 +26,28 @@ def _turned(T: torch.Tensor, degrees: float) -> torch.Tensor:
     return T @ yaw_rotation(UP, math.radians(degrees), CENTRE_2)
 
 
-def _choose(with_handle: bool, candidates_deg, count_renders: bool = False):
+def _setup(with_handle: bool = True):
+    """The two-box scene, its training images, a render function and the scene's instance maps."""
     scene, labels, T = _scene(with_handle, yaw_i=math.radians(30))
     viewmats = _views()
     images = _images(scene, viewmats)
     render = _render_fn(viewmats)
+    rgb, ids = instance_id_maps(scene, labels, range(len(images)), render)
+    return scene, labels, T, images, render, ids, rgb
+
+
+def _choose(with_handle: bool, candidates_deg, count_renders: bool = False):
+    scene, labels, T, images, render, ids, rgb = _setup(with_handle)
     calls = []
 
     def counted(view, g, extra):
         calls.append(view)
         return render(view, g, extra)
 
-    rgb, ids = instance_id_maps(scene, labels, range(len(images)), render)
     choice = choose_pose(scene, labels, 2, 1, [_turned(T, d) for d in candidates_deg], images,
                          counted if count_renders else render, ids, rgb, margin_db=1.0, rival_deg=20.0,
                          max_views=4)
     return choice, calls
-
-
-def test_rotation_angle_between_transforms():
-    T = yaw_rotation(UP, math.radians(37.0), CENTRE_2)
-    assert rotation_angle_deg(torch.eye(4), T) == pytest.approx(37.0, abs=1e-4)
-    assert rotation_angle_deg(T, T) == pytest.approx(0.0, abs=1e-3)
-    assert rotation_angle_deg(torch.eye(4), yaw_rotation(UP, math.pi, CENTRE_2)) == pytest.approx(180.0, abs=1e-3)
 
 
 def test_pick_with_margin_against_the_best_rival_turned_far_enough():
@@ -94,11 +93,7 @@ def test_copies_of_one_pose_are_rendered_once_and_are_not_rivals():
 
 
 def test_an_instance_no_view_sees_is_not_chosen_for():
-    scene, labels, T = _scene(True, yaw_i=math.radians(30))
-    viewmats = _views()
-    images = _images(scene, viewmats)
-    render = _render_fn(viewmats)
-    rgb, ids = instance_id_maps(scene, labels, range(len(images)), render)
+    scene, labels, T, images, render, ids, rgb = _setup()
     choice = choose_pose(scene, labels, 2, 1, [T], images, render, ids, rgb, 1.0, 20.0, 4, min_pixels=10**6)
     assert choice.chosen is None and not choice.accepted and "not seen" in choice.reason
 
@@ -112,11 +107,7 @@ def test_the_papers_rule_compares_nothing_with_the_images():
 def test_between_a_pose_and_its_polish_the_one_that_explains_the_images_better_is_kept():
     # the pipeline keeps the upright polish of the chosen pose only where the images agree: the two are compared
     # with no rival (every turn counts as the same pose) and no margin
-    scene, labels, T = _scene(True, yaw_i=math.radians(30))
-    viewmats = _views()
-    images = _images(scene, viewmats)
-    render = _render_fn(viewmats)
-    rgb, ids = instance_id_maps(scene, labels, range(len(images)), render)
+    scene, labels, T, images, render, ids, rgb = _setup()
     for pair, better in (([T, _turned(T, 6.0)], 0), ([_turned(T, 6.0), T], 1)):
         check = choose_pose(scene, labels, 2, 1, pair, images, render, ids, rgb, 0.0, 180.0, 4)
         assert check.chosen == better and check.rival is None and check.accepted

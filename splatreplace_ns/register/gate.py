@@ -1,4 +1,10 @@
-"""Do no harm: a registered pose is checked against the training images before its instance joins a template.
+"""Poses judged against the training images: chosen among registration's candidates, and checked before replacement.
+
+:func:`choose_pose` (on by default, ``RegistrationConfig.image_choice``) renders the class template under each
+candidate pose of an instance, with the rest of the scene, into the training views that show the instance most,
+and keeps the candidate that explains the instance's pixels best; one that no rival turned far from it trails by a
+margin is ambiguous and the instance is left as it was. :func:`gate_registrations` (off by default) is the older
+check of one registered pose against its turns, described below.
 
 Registration scores a pose by how well Gaussians overlap (inliers, ICP fitness); nothing in it looks at what
 the capture saw. Here each registered instance ``i`` is checked by analysis by synthesis: the class's template
@@ -32,6 +38,7 @@ import torch
 from torch import Tensor
 
 from splatreplace_ns.masks.render import labels_from_weights, one_hot_labels
+from splatreplace_ns.register.errors import geodesic_deg
 from splatreplace_ns.template.build import transform_gaussians
 
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "logit_opacities", "sh")
@@ -291,12 +298,9 @@ class PoseChoice:
         return out
 
 
-def rotation_angle_deg(a: Tensor, b: Tensor) -> float:
-    """Geodesic angle (degrees) between the rotation parts of two [4, 4] (or [3, 3]) transforms.
-
-    From ``‖Ra − Rb‖_F = 2√2 · sin(θ / 2)``, which stays accurate for small angles (the trace formula does not)."""
-    chord = float(torch.linalg.norm(a[:3, :3].double() - b[:3, :3].double())) / (2.0 * math.sqrt(2.0))
-    return math.degrees(2.0 * math.asin(min(1.0, chord)))
+def _turn_deg(a: Tensor, b: Tensor) -> float:
+    """Angle (degrees) between the rotation parts of two [4, 4] transforms."""
+    return geodesic_deg(a[:3, :3].double().numpy(), b[:3, :3].double().numpy())
 
 
 def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], margin_db: float,
@@ -310,7 +314,7 @@ def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], marg
         (chosen index, rival index or None, accepted).
     """
     chosen = max(range(len(scores)), key=lambda k: scores[k])
-    rivals = [k for k in range(len(scores)) if rotation_angle_deg(transforms[k], transforms[chosen]) > rival_deg]
+    rivals = [k for k in range(len(scores)) if _turn_deg(transforms[k], transforms[chosen]) > rival_deg]
     rival = max(rivals, key=lambda k: scores[k], default=None)
     accepted = rival is None or scores[chosen] - scores[rival] >= margin_db
     return chosen, rival, accepted
@@ -354,7 +358,7 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
         reason = "is the only pose among the candidates"
     else:
         gap = scores[chosen] - scores[rival]
-        turn = rotation_angle_deg(transforms[chosen], transforms[rival])
+        turn = _turn_deg(transforms[chosen], transforms[rival])
         reason = (f"explains its training pixels {gap:.2f} dB better than the best pose turned {turn:.0f}° from it "
                   f"(margin {margin_db:g} dB)" + ("" if accepted else ": ambiguous, left as it was"))
     return PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, reason)
