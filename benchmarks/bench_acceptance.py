@@ -7,7 +7,10 @@ class's symmetry). Then each pair of thresholds (min ICP fitness, min colour sco
 candidates exactly as registration applies them (``choose_candidate``), and the table counts the poses it would
 accept and refuse, right (within 5° of the truth after the upright polish, or, for a candidate the run did not
 choose, within 10° before it) and wrong. "oracle" takes the right candidate whenever one was posed: what a
-perfect choice among the same candidates could reach. Writes one JSON.
+perfect choice among the same candidates could reach. A second table applies the method's choice against the
+training images (``image_choice``: the template rendered under each candidate into the instance's training views,
+the best-explaining one accepted when it beats every rival turned more than 20° by a margin) at several margins.
+Writes one JSON.
 
     python benchmarks/bench_acceptance.py --runs benchmarks/runs/suite --out benchmarks/results/acceptance_dev.json
 """
@@ -43,6 +46,8 @@ class BenchAcceptanceConfig:
     out: Path = Path("benchmarks/results/acceptance_dev.json")
     thresholds: Tuple[Tuple[float, float], ...] = (DEFAULTS, (0.0, 0.0), (0.1, 0.05), (0.15, 0.1), (0.2, 0.05), (0.3, 0.15))
     """(min ICP fitness, min colour score) pairs to tabulate; the first is the defaults."""
+    margins: Tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
+    """dB: margins of the choice against the training images to tabulate."""
 
 
 def defaults_runs(cfg: BenchAcceptanceConfig) -> List[Tuple[int, Path]]:
@@ -58,7 +63,8 @@ def record_candidates(run: Path) -> Dict:
     from splatreplace_ns.eval.report import registration_report
 
     pipeline = load_pipeline(run / "ours/splat-replace/run/config.yml", SEGMENTATION_STEP)
-    pipeline.config.registration = replace(pipeline.config.registration, min_fitness=0.0, min_photometric_fitness=0.0)
+    pipeline.config.registration = replace(pipeline.config.registration, min_fitness=0.0, min_photometric_fitness=0.0,
+                                           image_choice=False)
     start = time.perf_counter()
     with torch.no_grad():
         pipeline.run_registration()
@@ -66,7 +72,41 @@ def record_candidates(run: Path) -> Dict:
     report, why = registration_report(pipeline)
     if report is None:
         raise RuntimeError(f"{run}: no registration report ({why})")
-    return {"per_instance": report["per_instance"], "time_s": seconds}
+    start = time.perf_counter()
+    with torch.no_grad():
+        explained = explain_candidates(pipeline)
+    for row in report["per_instance"]:
+        if row["instance"] in explained and row.get("candidates"):
+            own, scores = explained[row["instance"]]
+            row["own_psnr"] = own
+            for c, score, entry in zip(row["candidates"], scores,
+                                       pipeline.model.registration[row["instance"]]["candidates"]):
+                c["image_psnr"] = score
+                c["transform"] = entry["transform"]
+    return {"per_instance": report["per_instance"], "time_s": seconds, "image_scores_s": time.perf_counter() - start}
+
+
+def explain_candidates(pipeline) -> Dict[int, Tuple[float, List[float]]]:
+    """Every registered instance's candidate poses scored against its training images, as the method's pose
+    choice scores them (``splatreplace_ns.register.gate.choose_pose``) → {instance: (PSNR by its own Gaussians,
+    [PSNR with the template placed under each candidate])}; instances seen in no training view are left out."""
+    from splatreplace_ns.register.gate import choose_pose, instance_id_maps
+
+    cfg = pipeline.config.registration
+    pipeline.model.eval()
+    scene, labels, images, render = pipeline.pose_check_inputs()
+    labels = labels.to(scene["means"].device)
+    rgb_before, id_maps = instance_id_maps(scene, labels, range(len(images)), render)
+    out = {}
+    for iid, entry in pipeline.model.registration.items():
+        if not entry.get("candidates") or int(entry["template"]) == int(iid):
+            continue
+        choice = choose_pose(scene, labels, int(iid), int(entry["template"]),
+                             [c["transform"] for c in entry["candidates"]], images, render, id_maps, rgb_before,
+                             cfg.image_margin_db, cfg.image_rival_deg, cfg.image_views)
+        if choice.chosen is not None:
+            out[int(iid)] = (choice.psnr_own, choice.scores)
+    return out
 
 
 def decide(candidates: List[Dict], proposed_error: float, min_fitness: float,
@@ -105,6 +145,29 @@ def tabulate(instances: List[Dict], thresholds) -> List[Dict]:
     return rows
 
 
+def tabulate_image_choice(instances: List[Dict], margins, rival_deg: float) -> List[Dict]:
+    """The choice against the training images (``choose_pose``'s rule) at each margin: the best-explaining
+    candidate, accepted when no rival turned more than ``rival_deg`` comes within the margin; right when that
+    candidate is within CANDIDATE_RIGHT_DEG of the truth. An instance seen in no training view keeps the
+    thresholds' decision (the defaults), as in the method."""
+    from splatreplace_ns.register.gate import pick_with_margin
+
+    rows = []
+    for margin in margins:
+        row = {"margin_db": margin, "accepted_right": 0, "accepted_wrong": 0, "refused_right": 0, "refused_wrong": 0}
+        for inst in instances:
+            cands = inst["candidates"]
+            if any(c.get("image_psnr") is None for c in cands):
+                ok, error, limit = decide(cands, inst["proposed_rotation_error_deg"], *DEFAULTS)
+            else:
+                at, _, ok = pick_with_margin([c["image_psnr"] for c in cands],
+                                             [torch.tensor(c["transform"]) for c in cands], margin, rival_deg)
+                error, limit = cands[at]["rotation_error_deg"], CANDIDATE_RIGHT_DEG
+            row[("accepted_" if ok else "refused_") + ("right" if error <= limit else "wrong")] += 1
+        rows.append(row)
+    return rows
+
+
 def main(cfg: BenchAcceptanceConfig) -> Dict:
     scenes, instances = {}, []
     for seed, run in defaults_runs(cfg):
@@ -124,15 +187,23 @@ def main(cfg: BenchAcceptanceConfig) -> Dict:
                 "fitness": best["fitness"], "colour": best["colour"],
                 "best_right_candidate": None if best_right is None else {k: best_right[k] for k in ("fitness", "colour")},
                 "gain_with_the_defaults": gains.get(str(r["instance"]), {}).get("gain"),
-                "candidates": [{k: c[k] for k in ("rotation_error_deg", "fitness", "colour", "inliers", "pair")}
-                               for c in r["candidates"]],
+                "own_psnr": r.get("own_psnr"),
+                "candidates": [{k: c.get(k) for k in ("rotation_error_deg", "fitness", "colour", "inliers", "pair",
+                                                      "image_psnr", "transform")} for c in r["candidates"]],
             })
-        scenes[seed] = {"registration_s": record["time_s"], "instances": sum(i["seed"] == seed for i in instances)}
-        print(f"seed {seed}: {scenes[seed]['instances']} registered instances, {record['time_s']:.1f} s", flush=True)
+        scenes[seed] = {"registration_s": record["time_s"], "image_scores_s": record["image_scores_s"],
+                        "instances": sum(i["seed"] == seed for i in instances)}
+        print(f"seed {seed}: {scenes[seed]['instances']} registered instances, registration {record['time_s']:.1f} s, "
+              f"image scores {record['image_scores_s']:.1f} s", flush=True)
     rows = tabulate(instances, cfg.thresholds)
     print(f"\n{'min fitness':>11} {'min colour':>10} | accepted right / wrong | refused right / wrong")
     for r in rows:
         print(f"{r['min_fitness']!s:>11} {r['min_colour']!s:>10} | {r['accepted_right']:>14} / {r['accepted_wrong']:<5} |"
+              f" {r['refused_right']:>13} / {r['refused_wrong']}")
+    image_rows = tabulate_image_choice(instances, cfg.margins, RegistrationConfig.image_rival_deg)
+    print(f"\nchoice against the training images\n{'margin dB':>9} | accepted right / wrong | refused right / wrong")
+    for r in image_rows:
+        print(f"{r['margin_db']:>9} | {r['accepted_right']:>14} / {r['accepted_wrong']:<5} |"
               f" {r['refused_right']:>13} / {r['refused_wrong']}")
     print("\nper instance (seed, instance, pose error after the polish, its fitness / colour, best right candidate's):")
     for i in instances:
@@ -141,7 +212,9 @@ def main(cfg: BenchAcceptanceConfig) -> Dict:
               f"{i['colour']:.3f}  " + ("none posed" if right is None else f"{right['fitness']:.3f} / {right['colour']:.3f}"))
     result = {"benchmark": "acceptance", "split": "dev", "res": cfg.res, "seeds": sorted(scenes), "scenes": scenes,
               "right_deg": {"chosen_after_polish": WRONG_POSE_DEG, "other_candidate": CANDIDATE_RIGHT_DEG},
-              "table": rows, "instances": instances}
+              "table": rows, "image_choice_table": image_rows,
+              "instances": [{**i, "candidates": [{k: v for k, v in c.items() if k != "transform"} for c in i["candidates"]]}
+                            for i in instances]}  # the poses themselves are not kept
     write_result_json(result, cfg.out)
     return result
 
