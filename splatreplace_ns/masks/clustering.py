@@ -31,8 +31,7 @@ class ClusteringConfig:
     min_opacity: float = 0.3
     """Fainter Gaussians are not clustered (they are floaters or fuzz); they follow their nearest solid neighbour."""
     plane_distance: float = 1.5
-    """Plane inlier distance, in spacings (0.6 left the floor's fuzz under the chairs in their clusters:
-    masks mIoU on office 0.70 → 0.74 with 1.5, `bench masks`)."""
+    """Plane inlier distance, in spacings."""
     min_plane_fraction: float = 0.04
     """Stop removing planes when the next plane holds less than this fraction of the solid Gaussians."""
     max_planes: int = 8
@@ -42,16 +41,13 @@ class ClusteringConfig:
     do; the coplanar faces of a few objects do not)."""
     max_two_sidedness: float = 0.35
     """A wall has the scene on one side: of the solid Gaussians just off it (between ``plane_distance`` and
-    ten times that), at most this fraction may lie on its less crowded side; a plane through a row of columns
-    (their axes and the beam's face) has as much on either side. Level planes are not tested: chess's board,
-    with its base trained on every frame, holds a layer of opaque Gaussians under its top (0.44 of its near
-    neighbours) and was refused (masks mIoU 0.573; untested, 0.852). 0.5 turns the test off."""
+    ten times that), at most this fraction may lie on its less crowded side (a plane through a row of columns
+    has as much on either side). Level planes are not tested. 0.5 turns the test off."""
     plane_normal_agreement: float = 0.8
     """A plane inlier must also face the plane's way (|cos| of its local normal with the plane's normal),
     so that a plane slicing obliquely through furniture does not count the furniture as its support."""
     cluster_eps: float = 2.0
-    """DBSCAN radius, in spacings. Masks mIoU office / temple / chess (`bench masks`, same base models, the
-    view-counted spacing): 1.5: 0.789 / 0.513 / 0.744; 2.0: 0.806 / 0.528 / 0.743; 2.5: 0.795 / 0.539 / 0.743."""
+    """DBSCAN radius, in spacings."""
     cluster_min_points: int = 8
     """DBSCAN core-point neighbour count."""
     click_neighbours: int = 12
@@ -66,49 +62,36 @@ class ClusteringConfig:
     follow_radius: float = 1.5
     """Faint Gaussians within this many spacings of a solid one take its label."""
     reclaim_radius: float = 0.0
-    """Plane inliers within this many spacings of a clustered Gaussian join its cluster (an object's
-    base and faces flush with a plane are plane inliers too). Off by default: on office the reclaimed
-    floor around chair legs cost more than the feet gained (masks mIoU +0.01 without it)."""
+    """Plane inliers within this many spacings of a clustered Gaussian join its cluster (an object's base and
+    faces flush with a plane are plane inliers too). 0 turns it off (the default)."""
     split_method: Literal["geodesic", "random_walk"] = "random_walk"
     """How a cluster holding several clicks is split: each point to the seed nearest along the kNN graph
     (``geodesic``), or to the seed a random walk from it most likely reaches first (``random_walk``,
-    Grady 2006), which cuts at bottlenecks and colour changes rather than at the geodesic midpoint
-    (office masks mIoU 0.737 → 0.805, with 16 neighbours, `bench masks`)."""
+    Grady 2006), which cuts at bottlenecks and colour changes rather than at the geodesic midpoint."""
     split_min_probability: float = 0.5
     """``random_walk``: a point whose most likely click the walk reaches with less than this probability goes
-    to the background. Structure that several instances share (a temple's entablature above its columns, the
-    steps below them) is reached about equally from several clicks, while each instance's own points lead
-    to its click. With two clicks in a cluster every point has one at 0.5 or more, so a chair against a
-    table splits as before (temple masks mIoU 0.35 → 0.44 over its seven lifted clicks, office unchanged;
-    `bench masks`). 0 gives every point to a click."""
+    to the background (structure several instances share is reached about equally from several clicks; with
+    two clicks every point has one at 0.5 or more). 0 gives every point to a click."""
     split_seed_radius: float = 2.0
     """``random_walk``: the seed of a click is every point within this many spacings of it."""
     split_neighbours: int = 16
     """kNN graph degree when a cluster holding several clicks is split between them."""
     split_colour_weight: float = 20.0
-    """Edge length factor per unit of RGB difference in that graph. Masks mIoU (`bench masks`, same base
-    models) office / temple: 10: 0.776 / 0.455; 20: 0.825 / 0.513; 30: 0.821 / 0.495; 40: 0.797 / 0.495; at 60
-    the walk no longer crosses a cluster's own texture (temple 0.007, office 0.651)."""
+    """Edge length factor per unit of RGB difference in that graph."""
     split_normal_weight: float = 0.0
     """Edge length factor per unit of ``1 − |cos|`` between the two points' local normals, so that the split
-    is cut where the surface turns (a chair's back against a table's edge). Off by default: on office, 10 with
-    colour weight 2 gave masks mIoU 0.850 (0.805 without), but two touching boxes that meet face to face
-    split worse, since their contact does not turn and every box edge does (unit tests)."""
+    is cut where the surface turns. 0 turns it off (the default: two boxes meeting face to face split worse
+    with it, since their contact does not turn and every box edge does)."""
     background_radius: float = 0.0
     """Removed-plane Gaussians within this many spacings of a clicked cluster join its random walk as one more
-    seed, the background's, and the cluster is walked even when it holds one click: fuzz of the floor under a
-    table, or a line of the ground's Gaussians linked to a chess piece, then goes to the floor rather than
-    to the instance. Off by default: masks mIoU office / temple / chess (`bench masks`, same base models,
-    colour prior 2, edge factor 10, probability 0.9) with 2: 0.807 / 0.589 / 0.740, off: 0.818 / 0.610 /
-    0.679 (chess's two pieces that held the ground 0.17 → 0.71 and 0.28 → 0.72; the lowest Gaussians of
-    columns and chairs go to the floor too). 0 turns it off."""
+    seed, the background's, and the cluster is walked even when it holds one click, so that floor fuzz linked
+    to an instance goes to the floor. 0 turns it off (the default)."""
     background_probability: float = 0.9
     """A walked point goes to the background only when its walk reaches the background first with at least
     this probability (the lowest Gaussians of an object touch the floor as closely as the floor's fuzz does)."""
     background_edge_factor: float = 10.0
     """Length factor of the walk's edges onto the background seed: an object rests on its support, so a step
-    onto the plane counts as a longer one (chess, without the colour prior: 0.699 / 0.727 / 0.740 with
-    3 / 6 / 10; fuzz two spacings above the floor is then cut off the floor as well, see the unit test)."""
+    onto the plane counts as a longer one."""
     colour_model_probability: float = 0.9
     """Points a walk gives one click with at least this probability make that click's class colour model."""
     colour_bins: int = 8
@@ -127,21 +110,14 @@ class ClusteringConfig:
     class's (:func:`reclaim_by_colour`): an object's foot lies in the plane's inlier band (`bench mask-passes`).
     0 turns it off."""
     colour_reclaim_ratio: float = 2.0
-    """How much likelier the colour must be under the instance's class than under the planes' (measured with
-    ``colour_reclaim_away`` 3 on the same base models as `bench masks`: 4: chess 0.834, temple with its base on
-    every frame 0.730; 2: 0.836 / 0.745; 3: temple 0.737; office unchanged. Before the planes' colour left out
-    what lies next to the instances: 2: chess 0.751, 4: 0.748, 10: 0.731; 1 also takes board squares of a
-    piece's colour: 0.738)."""
+    """How much likelier the colour must be under the instance's class than under the planes'."""
     colour_reclaim_away: float = 3.0
     """The planes' colour histogram counts only their Gaussians farther than this many spacings from every
-    instance: a column's abacus flush with the beam's face lies in the face's plane and, counted, made its
-    terracotta the plane's own (ratio 2: chess 0.833 → 0.836 and temple with its base on every frame 0.735 →
-    0.745 with 2 or 3; 5 counts too little of the board near the pieces: chess 0.795). 0: every plane
-    Gaussian."""
+    instance (an object's part flush with a plane would otherwise make its colour the plane's). 0: every
+    plane Gaussian."""
     colour_reclaim_rounds: int = 10
     """At most this many rounds of :func:`reclaim_by_colour`, each from the instances as the last one left
-    them, so that a foot wider than the radius comes back whole (the benchmark scenes' feet come back in one:
-    the same scores with 1, 3 or 10)."""
+    them, so that a foot wider than the radius comes back whole."""
     duplicate_radius: float = 3.0
     """Two clicks in one cluster closer than this many spacings are one object clicked twice (an error)."""
     seed: int = 0
