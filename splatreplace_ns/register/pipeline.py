@@ -80,25 +80,25 @@ class RegistrationConfig:
             overlapping centres agree best in colour; guards against weak matchers locking onto
             look-alike views, e.g. a box turned by 180°).
         color_tolerance: mean absolute RGB difference under which two overlapping centres agree.
-        min_photometric_fitness: with select="photometric", a best score below this is a failure. Correct
-            poses scored 0.12–0.67 on the sim presets (bench register); an accepted wrong chair pose scored 0.02
-            and put a chair in the wrong place in the replaced scene (a failure leaves the instance as it was).
+        min_photometric_fitness: with select="photometric", a best score below this is a failure
+            (a failure leaves the instance as it was). With ``image_choice`` it applies only to an instance no
+            training view shows.
         fpfh_voxel_rel: FPFH voxel size relative to the template radius.
         fpfh_restarts: RANSAC restarts for FPFH (best fitness kept).
         min_opacity: ICP, the fitness and the photometric score use the centres of the Gaussians at least this
-            opaque (faint ones sit off the surface and pull ICP; dropping them halved the chair errors on office,
-            bench register); an instance with fewer than ``min_solid_points`` such Gaussians uses all of them.
+            opaque (faint ones sit off the surface and pull ICP); an instance with fewer than
+            ``min_solid_points`` such Gaussians uses all of them.
             The renders always use every Gaussian, so the matcher sees the whole appearance.
         min_solid_points: see ``min_opacity``.
-        min_fitness: (correct poses: 0.24–0.99 on the sim presets) the final ICP/FPFH fitness (fraction of
-            source centres with a template centre within
-            the finest distance) below which a result counts as a failure.
+        min_fitness: the final ICP/FPFH fitness (fraction of source centres with a template centre within the
+            finest distance) below which a result counts as a failure; with ``image_choice`` it applies only to
+            an instance no training view shows.
         multistart_turns: with select="photometric", ICP also starts from this many turns about ``up_axis``
             (centroids aligned) and those alignments compete with the PnP ones on the same colour score.
             The worst-seen copies are the ones whose few matches pose no view pair or a wrong one; 0: off.
         up_axis: the scene's up direction in the model's frame (+z after nerfstudio's "up" orientation, which
-            is the cameras' mean up: 7.6° off the floor on the office preset); with ``upright``, callers that
-            have the background Gaussians replace it by the floor's normal (:func:`with_floor_up_axis`).
+            is the cameras' mean up, a few degrees off the floor); with ``upright``, callers that have the
+            background Gaussians replace it by the floor's normal (:func:`with_floor_up_axis`).
         upright: the chosen pose (after ICP) is refined once more as a turn about the floor's normal plus a
             translation (copies standing on one floor have no tilt between them; free ICP trades a little tilt
             for a better fit of a partly reconstructed copy). It needs the floor's normal to a fraction of a
@@ -106,15 +106,13 @@ class RegistrationConfig:
             selection is unchanged. False: full rigid ICP only, as in the paper (bench register, row
             ``no_upright``).
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished (a copy
-            that really leans or lies on its side). Free ICP on a sparse copy tilts it by several degrees:
-            with 5° a chess pawn tilted 5.2° (5.1° off, 4.1 % of its diagonal; upright 0.3°, 1.0 %) and an
-            office chair tilted past it kept 9.9° of error.
+            that really leans or lies on its side; free ICP on a sparse copy tilts it by several degrees, see
+            docs/registration.md).
         colour_fitness_ratio: with select="photometric", the colour score chooses only among the acceptable
             candidates whose fitness is at least this fraction of the best one's (shape first). Under one light
             a side face's colour depends on where it points in the world, so a wrong pose that lays a partly
             seen copy's lit faces on the template's lit faces can win on colour while fitting the shape clearly
-            worse (office's segmented chair 5: 178° off, fitness 0.535 against 0.680 for its right pose). 0: the
-            colour score alone (bench register, row ``no_shape_first``).
+            worse. 0: the colour score alone (bench register, row ``no_shape_first``).
         seed: RANSAC seed.
         image_choice: with select="photometric" and the training images at hand (the method's pipeline), every
             refined candidate is rendered into the instance's training views with the template in its place and
