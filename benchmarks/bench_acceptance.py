@@ -9,8 +9,8 @@ accept and refuse, right (within 5° of the truth after the upright polish, or, 
 choose, within 10° before it) and wrong. "oracle" takes the right candidate whenever one was posed: what a
 perfect choice among the same candidates could reach. A second table applies the method's choice against the
 training images (``image_choice``: the template rendered under each candidate into the instance's training views,
-the best-explaining one accepted when it beats every rival turned more than 20° by a margin) at several margins.
-Writes one JSON.
+the best-explaining one accepted when it beats every rival turned more than 20° by a margin) at several margins;
+with ``--views``, once more for each number of training views compared per instance. Writes one JSON.
 
     python benchmarks/bench_acceptance.py --runs benchmarks/runs/suite --out benchmarks/results/acceptance_dev.json
 """
@@ -22,7 +22,7 @@ import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import torch
 import tyro
@@ -48,6 +48,9 @@ class BenchAcceptanceConfig:
     """(min ICP fitness, min colour score) pairs to tabulate; the first is the defaults."""
     margins: Tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
     """dB: margins of the choice against the training images to tabulate."""
+    views: Tuple[int, ...] = ()
+    """Other numbers of training views per instance to score the candidates with, one more table each (the
+    method's ``image_views`` is always scored; each count renders every distinct candidate that many times)."""
 
 
 def defaults_runs(cfg: BenchAcceptanceConfig) -> List[Tuple[int, Path]]:
@@ -57,7 +60,7 @@ def defaults_runs(cfg: BenchAcceptanceConfig) -> List[Tuple[int, Path]]:
     return [(seed, p) for seed, p in runs if seed in DEV_SEEDS and (p / "result.json").exists()]
 
 
-def record_candidates(run: Path) -> Dict:
+def record_candidates(run: Path, views: Tuple[int, ...] = ()) -> Dict:
     """Registration of the run's segmented scene with the thresholds off; the report of every instance with its
     candidates scored against the truth. → {"per_instance": [...], "time_s"}."""
     from splatreplace_ns.eval.report import registration_report
@@ -75,21 +78,24 @@ def record_candidates(run: Path) -> Dict:
     start = time.perf_counter()
     with torch.no_grad():
         explained = explain_candidates(pipeline)
+        by_views = {k: explain_candidates(pipeline, k) for k in views}
     for row in report["per_instance"]:
         if row["instance"] in explained and row.get("candidates"):
             own, scores = explained[row["instance"]]
             row["own_psnr"] = own
-            for c, score, entry in zip(row["candidates"], scores,
-                                       pipeline.model.registration[row["instance"]]["candidates"]):
+            for i, (c, score, entry) in enumerate(zip(row["candidates"], scores,
+                                                      pipeline.model.registration[row["instance"]]["candidates"])):
                 c["image_psnr"] = score
+                c["image_psnr_by_views"] = {k: by_views[k][row["instance"]][1][i] for k in views}
                 c["transform"] = entry["transform"]
     return {"per_instance": report["per_instance"], "time_s": seconds, "image_scores_s": time.perf_counter() - start}
 
 
-def explain_candidates(pipeline) -> Dict[int, Tuple[float, List[float]]]:
+def explain_candidates(pipeline, max_views: Optional[int] = None) -> Dict[int, Tuple[float, List[float]]]:
     """Every registered instance's candidate poses scored against its training images, as the method's pose
-    choice scores them (``splatreplace_ns.register.gate.choose_pose``) → {instance: (PSNR by its own Gaussians,
-    [PSNR with the template placed under each candidate])}; instances seen in no training view are left out."""
+    choice scores them (``splatreplace_ns.register.gate.choose_pose``; in ``max_views`` views, default the
+    method's) → {instance: (PSNR by its own Gaussians, [PSNR with the template placed under each candidate])};
+    instances seen in no training view are left out."""
     from splatreplace_ns.register.gate import choose_pose, instance_id_maps
 
     cfg = pipeline.config.registration
@@ -103,7 +109,7 @@ def explain_candidates(pipeline) -> Dict[int, Tuple[float, List[float]]]:
             continue
         choice = choose_pose(scene, labels, int(iid), int(entry["template"]),
                              [c["transform"] for c in entry["candidates"]], images, render, id_maps, rgb_before,
-                             cfg.image_margin_db, cfg.image_rival_deg, cfg.image_views)
+                             cfg.image_margin_db, cfg.image_rival_deg, max_views or cfg.image_views)
         if choice.chosen is not None:
             out[int(iid)] = (choice.psnr_own, choice.scores)
     return out
@@ -145,22 +151,27 @@ def tabulate(instances: List[Dict], thresholds) -> List[Dict]:
     return rows
 
 
-def tabulate_image_choice(instances: List[Dict], margins, rival_deg: float) -> List[Dict]:
+def tabulate_image_choice(instances: List[Dict], margins, rival_deg: float, views: Optional[int] = None) -> List[Dict]:
     """The choice against the training images (``choose_pose``'s rule) at each margin: the best-explaining
     candidate, accepted when no rival turned more than ``rival_deg`` comes within the margin; right when that
     candidate is within CANDIDATE_RIGHT_DEG of the truth. An instance seen in no training view keeps the
-    thresholds' decision (the defaults), as in the method."""
+    thresholds' decision (the defaults), as in the method. ``views``: use the scores of that many views
+    (``image_psnr_by_views``) instead of the method's."""
     from splatreplace_ns.register.gate import pick_with_margin
 
     rows = []
     for margin in margins:
         row = {"margin_db": margin, "accepted_right": 0, "accepted_wrong": 0, "refused_right": 0, "refused_wrong": 0}
+        if views is not None:
+            row = {"views": views, **row}
         for inst in instances:
             cands = inst["candidates"]
-            if any(c.get("image_psnr") is None for c in cands):
+            scores = [c.get("image_psnr") if views is None else (c.get("image_psnr_by_views") or {}).get(views)
+                      for c in cands]
+            if any(score is None for score in scores):
                 ok, error, limit = decide(cands, inst["proposed_rotation_error_deg"], *DEFAULTS)
             else:
-                at, _, ok = pick_with_margin([c["image_psnr"] for c in cands],
+                at, _, ok = pick_with_margin(scores,
                                              [torch.tensor(c["transform"]) for c in cands], margin, rival_deg)
                 error, limit = cands[at]["rotation_error_deg"], CANDIDATE_RIGHT_DEG
             row[("accepted_" if ok else "refused_") + ("right" if error <= limit else "wrong")] += 1
@@ -171,7 +182,7 @@ def tabulate_image_choice(instances: List[Dict], margins, rival_deg: float) -> L
 def main(cfg: BenchAcceptanceConfig) -> Dict:
     scenes, instances = {}, []
     for seed, run in defaults_runs(cfg):
-        record = record_candidates(run)
+        record = record_candidates(run, cfg.views)
         gains = json.loads((run / "result.json").read_text())["row"]["per_instance"]
         for r in record["per_instance"]:
             if not r.get("candidates"):
@@ -189,7 +200,8 @@ def main(cfg: BenchAcceptanceConfig) -> Dict:
                 "gain_with_the_defaults": gains.get(str(r["instance"]), {}).get("gain"),
                 "own_psnr": r.get("own_psnr"),
                 "candidates": [{k: c.get(k) for k in ("rotation_error_deg", "fitness", "colour", "inliers", "pair",
-                                                      "image_psnr", "transform")} for c in r["candidates"]],
+                                                      "image_psnr", "image_psnr_by_views", "transform")}
+                               for c in r["candidates"]],
             })
         scenes[seed] = {"registration_s": record["time_s"], "image_scores_s": record["image_scores_s"],
                         "instances": sum(i["seed"] == seed for i in instances)}
@@ -205,6 +217,14 @@ def main(cfg: BenchAcceptanceConfig) -> Dict:
     for r in image_rows:
         print(f"{r['margin_db']:>9} | {r['accepted_right']:>14} / {r['accepted_wrong']:<5} |"
               f" {r['refused_right']:>13} / {r['refused_wrong']}")
+    views_rows = [row for k in cfg.views for row in
+                  tabulate_image_choice(instances, cfg.margins, RegistrationConfig.image_rival_deg, k)]
+    if views_rows:
+        print(f"\nthe same choice with other numbers of views\n{'views':>5} {'margin dB':>9} | accepted right / wrong |"
+              " refused right / wrong")
+        for r in views_rows:
+            print(f"{r['views']:>5} {r['margin_db']:>9} | {r['accepted_right']:>14} / {r['accepted_wrong']:<5} |"
+                  f" {r['refused_right']:>13} / {r['refused_wrong']}")
     print("\nper instance (seed, instance, pose error after the polish, its fitness / colour, best right candidate's):")
     for i in instances:
         right = i["best_right_candidate"]
@@ -212,7 +232,8 @@ def main(cfg: BenchAcceptanceConfig) -> Dict:
               f"{i['colour']:.3f}  " + ("none posed" if right is None else f"{right['fitness']:.3f} / {right['colour']:.3f}"))
     result = {"benchmark": "acceptance", "split": "dev", "res": cfg.res, "seeds": sorted(scenes), "scenes": scenes,
               "right_deg": {"chosen_after_polish": WRONG_POSE_DEG, "other_candidate": CANDIDATE_RIGHT_DEG},
-              "table": rows, "image_choice_table": image_rows,
+              "table": rows, "image_choice_table": image_rows, "image_views": RegistrationConfig.image_views,
+              "image_choice_by_views": views_rows,
               "instances": [{**i, "candidates": [{k: v for k, v in c.items() if k != "transform"} for c in i["candidates"]]}
                             for i in instances]}  # the poses themselves are not kept
     write_result_json(result, cfg.out)

@@ -76,3 +76,28 @@ def test_the_choice_against_the_images_is_tabulated_with_its_margin(bench):
     assert strip(rows[0]) == (2, 1, 0, 0)
     assert strip(rows[1]) == (2, 0, 0, 1)
     assert strip(rows[2]) == (1, 0, 1, 1)
+
+
+def test_the_choice_is_tabulated_with_the_scores_of_other_view_counts(bench):
+    import math
+
+    import torch
+
+    from splatreplace_ns.register.gate import yaw_rotation
+
+    def turned(deg):
+        return yaw_rotation(torch.tensor([0.0, 0.0, 1.0]), math.radians(deg), torch.zeros(3)).tolist()
+
+    # with the method's views the truth wins by 2 dB; with 12 views the flip wins by 0.5 dB
+    instance = {"proposed_rotation_error_deg": 1.0, "candidates": [
+        {**cand(1.0, 0.3, 0.2), "image_psnr": 17.0, "image_psnr_by_views": {12: 16.0}, "transform": turned(0.0)},
+        {**cand(179.0, 0.3, 0.2), "image_psnr": 15.0, "image_psnr_by_views": {12: 16.5}, "transform": turned(180.0)},
+    ]}
+    # seen in no training view (recorded without scores): the thresholds decide, whatever the view count
+    unseen = {"proposed_rotation_error_deg": 0.5, "candidates": [
+        {**cand(0.5, 0.4, 0.3), "image_psnr": None, "image_psnr_by_views": None, "transform": turned(0.0)}]}
+    strip = lambda r: (r["accepted_right"], r["accepted_wrong"], r["refused_right"], r["refused_wrong"])  # noqa: E731
+    method, twelve = (bench.tabulate_image_choice([instance, unseen], (0.0, 1.0), 20.0, views) for views in (None, 12))
+    assert [strip(r) for r in method] == [(2, 0, 0, 0), (2, 0, 0, 0)]
+    assert [strip(r) for r in twelve] == [(1, 1, 0, 0), (1, 0, 0, 1)]
+    assert twelve[0]["views"] == 12 and "views" not in method[0]
