@@ -77,8 +77,8 @@ def record_candidates(run: Path, views: Tuple[int, ...] = ()) -> Dict:
         raise RuntimeError(f"{run}: no registration report ({why})")
     start = time.perf_counter()
     with torch.no_grad():
-        explained = explain_candidates(pipeline)
-        by_views = {k: explain_candidates(pipeline, k) for k in views}
+        scored = explain_candidates(pipeline, (pipeline.config.registration.image_views, *views))
+    explained, by_views = scored[0], dict(zip(views, scored[1:]))
     for row in report["per_instance"]:
         if row["instance"] in explained and row.get("candidates"):
             own, scores = explained[row["instance"]]
@@ -91,11 +91,11 @@ def record_candidates(run: Path, views: Tuple[int, ...] = ()) -> Dict:
     return {"per_instance": report["per_instance"], "time_s": seconds, "image_scores_s": time.perf_counter() - start}
 
 
-def explain_candidates(pipeline, max_views: Optional[int] = None) -> Dict[int, Tuple[float, List[float]]]:
+def explain_candidates(pipeline, view_counts: Tuple[int, ...]) -> List[Dict[int, Tuple[float, List[float]]]]:
     """Every registered instance's candidate poses scored against its training images, as the method's pose
-    choice scores them (``splatreplace_ns.register.gate.choose_pose``; in ``max_views`` views, default the
-    method's) → {instance: (PSNR by its own Gaussians, [PSNR with the template placed under each candidate])};
-    instances seen in no training view are left out."""
+    choice scores them (``splatreplace_ns.register.gate.choose_pose``), once per number of views in
+    ``view_counts`` → per count {instance: (PSNR by its own Gaussians, [PSNR with the template placed under each
+    candidate])}; instances seen in no training view are left out. The scene is rendered once for all counts."""
     from splatreplace_ns.register.gate import choose_pose, instance_id_maps
 
     cfg = pipeline.config.registration
@@ -103,15 +103,16 @@ def explain_candidates(pipeline, max_views: Optional[int] = None) -> Dict[int, T
     scene, labels, images, render = pipeline.pose_check_inputs()
     labels = labels.to(scene["means"].device)
     rgb_before, id_maps = instance_id_maps(scene, labels, range(len(images)), render)
-    out = {}
+    out: List[Dict[int, Tuple[float, List[float]]]] = [{} for _ in view_counts]
     for iid, entry in pipeline.model.registration.items():
         if not entry.get("candidates") or int(entry["template"]) == int(iid):
             continue
-        choice = choose_pose(scene, labels, int(iid), int(entry["template"]),
-                             [c["transform"] for c in entry["candidates"]], images, render, id_maps, rgb_before,
-                             cfg.image_margin_db, cfg.image_rival_deg, max_views or cfg.image_views)
-        if choice.chosen is not None:
-            out[int(iid)] = (choice.psnr_own, choice.scores)
+        for scores, views in zip(out, view_counts):
+            choice = choose_pose(scene, labels, int(iid), int(entry["template"]),
+                                 [c["transform"] for c in entry["candidates"]], images, render, id_maps, rgb_before,
+                                 cfg.image_margin_db, cfg.image_rival_deg, views)
+            if choice.chosen is not None:
+                scores[int(iid)] = (choice.psnr_own, choice.scores)
     return out
 
 

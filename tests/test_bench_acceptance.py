@@ -20,6 +20,17 @@ def bench():
     return module
 
 
+def turned(deg):
+    """A [4, 4] turn of ``deg`` degrees about the up axis, as a nested list (how the runs record poses)."""
+    import math
+
+    import torch
+
+    from splatreplace_ns.register.gate import yaw_rotation
+
+    return yaw_rotation(torch.tensor([0.0, 0.0, 1.0]), math.radians(deg), torch.zeros(3)).tolist()
+
+
 def cand(error, fitness, colour, inliers=0, pair=(-1, 0)):
     return {"rotation_error_deg": error, "fitness": fitness, "colour": colour, "inliers": inliers, "pair": list(pair)}
 
@@ -50,15 +61,6 @@ def test_thresholds_choose_and_refuse_like_registration(bench):
 
 
 def test_the_choice_against_the_images_is_tabulated_with_its_margin(bench):
-    import math
-
-    import torch
-
-    from splatreplace_ns.register.gate import yaw_rotation
-
-    def turned(deg):
-        return yaw_rotation(torch.tensor([0.0, 0.0, 1.0]), math.radians(deg), torch.zeros(3)).tolist()
-
     def scored(error, psnr, deg, fitness=0.3, colour=0.2):
         return {**cand(error, fitness, colour), "image_psnr": psnr, "transform": turned(deg)}
 
@@ -79,15 +81,6 @@ def test_the_choice_against_the_images_is_tabulated_with_its_margin(bench):
 
 
 def test_the_choice_is_tabulated_with_the_scores_of_other_view_counts(bench):
-    import math
-
-    import torch
-
-    from splatreplace_ns.register.gate import yaw_rotation
-
-    def turned(deg):
-        return yaw_rotation(torch.tensor([0.0, 0.0, 1.0]), math.radians(deg), torch.zeros(3)).tolist()
-
     # with the method's views the truth wins by 2 dB; with 12 views the flip wins by 0.5 dB
     instance = {"proposed_rotation_error_deg": 1.0, "candidates": [
         {**cand(1.0, 0.3, 0.2), "image_psnr": 17.0, "image_psnr_by_views": {12: 16.0}, "transform": turned(0.0)},
