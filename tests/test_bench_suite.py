@@ -137,6 +137,22 @@ def test_one_tiny_scene_end_to_end(tmp_path, capsys):
     saved = (folder / "ours" / "splat-replace" / "run" / "config.yml").read_text()
     assert "select: inliers" in saved and "multistart_turns: 0" in saved
 
+    # the oracle from the same segmentation: every instance registered with its ground-truth pose, labelled from
+    # the ground-truth masks; the defaults' baseline is reused and their segmentation is not reported as its own
+    oracle = BenchSuiteConfig(**{**cfg.__dict__, "resume": False, "json": tmp_path / "oracle.json",
+                                 "oracle": "gt_instances", "from_segmentation": True})
+    oracle.main()
+    oracle_result = json.loads((tmp_path / "oracle.json").read_text())
+    (oracle_row,) = oracle_result["scenes"]
+    assert oracle_result["variant"] == "oracle-gt_instances" and oracle_result["parameters"]["oracle"] == "gt_instances"
+    assert oracle_row["baseline"] == row["baseline"] and oracle_row["segmentation_miou"] is None
+    assert "ground truth" in oracle_row["segmentation_unavailable"]
+    per_instance = oracle_row["registration"]["per_instance"]
+    assert per_instance and all(r["rotation_error_deg"] < 1e-3 for r in per_instance if r["success"])
+    assert oracle_row["registration"]["wrong"] == [] and oracle_row["replaced"]
+    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_oracle-gt_instances"
+    assert (folder / "result.json").exists() and not (folder / "baseline").exists()
+
     # a variant of segmentation trained whole against the defaults' baseline (not trained again); its own
     # segmentation is scored
     carve = BenchSuiteConfig(**{**cfg.__dict__, "resume": False, "json": tmp_path / "carve.json",
@@ -175,6 +191,8 @@ def test_a_variant_from_segmentation_needs_the_defaults_run(tmp_path):
     cfg.from_segmentation, cfg.reuse_baseline = False, True
     with pytest.raises(FileNotFoundError, match="run `splatreplace bench suite` with the same split"):
         suite.run_suite(cfg)
+    with pytest.raises(ValueError, match="--oracle .* needs --from-segmentation"):
+        suite.run_suite(BenchSuiteConfig(**{**cfg.__dict__, "oracle": "gt_poses"}))
     cfg.training_seed = 1
     with pytest.raises(ValueError, match="does not combine with --reuse-baseline"):
         suite.run_suite(cfg)
@@ -193,6 +211,9 @@ def test_variant_labels_name_the_run_folders():
     assert suite.variant_label(gate) == "reg-ours+pipeline.gate.enabled=True"
     assert suite.run_folder(gate, "s").name.endswith("_reg-ours+pipeline.gate.enabled=True")
     assert suite.run_folder(gate, "s", default=True) == suite.run_folder(default, "s")
+    assert suite.variant_label(BenchSuiteConfig(oracle="gt_poses")) == "oracle-gt_poses"
+    both = BenchSuiteConfig(registration="paper", oracle="gt_instances")
+    assert suite.variant_label(both) == "reg-paper+oracle-gt_instances"
     seeded = BenchSuiteConfig(out_dir=Path("runs"), training_seed=3)
     assert suite.run_folder(seeded, "s").name == "s_1500-500-1000_seed3"
 

@@ -90,6 +90,11 @@ class BenchSuiteConfig:
     """For a variant of segmentation or of an earlier stage: train ours whole, alone, and take the baseline's
     figures from the same scene's run with the defaults at the same budget (run the defaults first). Two variants
     started side by side with OMP_NUM_THREADS=1 each run as ours and the baseline do in the suite."""
+    oracle: Optional[Literal["gt_poses", "gt_instances"]] = None
+    """With --from-segmentation: replace stages by the scene's ground truth (``splatreplace_ns.bench.oracle``).
+    gt_poses registers every instance with the pose its transforms.json implies; gt_instances also labels the
+    Gaussians from its masks. What fine-tuning reaches when the stages before it are exact: the ceiling of the
+    representation at this budget, and the share of the gap each stage leaves."""
     training_seed: Optional[int] = None
     """Training seed of ours and the baseline: nerfstudio's machine.seed and the order the training views are drawn
     in (default: nerfstudio's 42). The same scenes trained again with another seed give the suite's run-to-run
@@ -121,9 +126,8 @@ def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
 def variant_label(cfg: BenchSuiteConfig) -> str:
     """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
     ``reg-ours+pipeline.gate.enabled=True``."""
-    if cfg.registration == "ours" and not cfg.overrides:
-        return ""
-    return "+".join([f"reg-{cfg.registration}", *cfg.overrides])
+    parts = [] if cfg.registration == "ours" and not cfg.overrides else [f"reg-{cfg.registration}", *cfg.overrides]
+    return "+".join(parts + ([f"oracle-{cfg.oracle}"] if cfg.oracle else []))
 
 
 def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> Path:
@@ -312,11 +316,20 @@ def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
     config = make_trainer_config(data, run_folder(cfg, data.name), B, C, F, experiment_name="ours", progress=True,
                                  resume_from=(checkpoints, B + C - 1))
     configure_ours(cfg)(config)
+    before = None
+    if cfg.oracle:
+        from splatreplace_ns.bench.oracle import use_ground_truth
+
+        def before(trainer) -> None:
+            use_ground_truth(trainer.pipeline, instances_too=cfg.oracle == "gt_instances")
+
     torch.set_num_threads(os.cpu_count() or 1)  # ours alone
-    trainer, seconds = _run(config)
+    trainer, seconds = _run(config, before)
     pipeline = trainer.pipeline
     registration_s = float(pipeline.registration_report.get("time_s", float("nan")))
     segmentation = {"miou": previous.get("segmentation_miou"), "unavailable": previous.get("segmentation_unavailable")}
+    if cfg.oracle == "gt_instances":  # the defaults' segmentation is not the one fine-tuned here
+        segmentation = {"unavailable": "the instances are the ground truth's (--oracle gt_instances)"}
     return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
             "segmentation": {k: v for k, v in segmentation.items() if v is not None},
             "times": {"ours": seconds, "baseline": previous["time_s"]["baseline"]},
@@ -406,6 +419,11 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
                      "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation,
                      **({"reuse_baseline": True} if cfg.reuse_baseline else {}),
                      **({"training_seed": cfg.training_seed} if cfg.training_seed is not None else {})}
+    if cfg.oracle is not None:
+        configuration["oracle"] = cfg.oracle
+        if not cfg.from_segmentation:
+            raise ValueError("--oracle replaces the stages after segmentation's checkpoint: it needs "
+                             "--from-segmentation (run the defaults first)")
     if cfg.training_seed is not None and (cfg.reuse_baseline or cfg.from_segmentation):
         raise ValueError("--training-seed trains ours and the baseline again; it does not combine with "
                          "--reuse-baseline or --from-segmentation (they reuse the runs of the default seed)")

@@ -198,8 +198,9 @@ def instance_gt_ids(pipeline) -> Tuple[Dict[int, int], Optional[str]]:
     """Ground-truth id of each of the model's instances, through the click it came from.
 
     An instance selected from ``clicks.json`` records its click as ``source = "click <index> (...)"``;
-    the click's ground-truth id is ``eval.segmentation.click_gt_ids``. Instances selected otherwise (the
-    viewer) have no ground-truth id.
+    the click's ground-truth id is ``eval.segmentation.click_gt_ids``. Instances labelled from the ground-truth
+    masks (``source = "ground truth"``, the oracle of ``splatreplace_ns.bench.oracle``) carry that id already.
+    Instances selected otherwise (the viewer) have no ground-truth id.
     """
     from splatreplace_ns.eval.segmentation import click_gt_ids
 
@@ -209,6 +210,9 @@ def instance_gt_ids(pipeline) -> Tuple[Dict[int, int], Optional[str]]:
     by_click = click_gt_ids(pipeline, clicks)
     mapping = {}
     for inst in pipeline.model.instances:
+        if inst.get("source") == "ground truth":  # labelled from the ground-truth masks (bench.oracle): same ids
+            mapping[int(inst["id"])] = int(inst["id"])
+            continue
         match = _CLICK_SOURCE.match(str(inst.get("source", "")))
         if match and int(match.group(1)) in by_click and by_click[int(match.group(1))] > 0:
             mapping[int(inst["id"])] = by_click[int(match.group(1))]
