@@ -1,0 +1,159 @@
+"""Where the scene suite's gain is lost: the defaults against the same scenes with exact stages.
+
+Reads three `splatreplace bench suite` JSONs of the same split, budget and scenes: the defaults, and the two oracles
+resumed from the defaults' segmentation (`--from-segmentation --oracle gt_poses`, `--oracle gt_instances`). The
+oracles fine-tune against the same baseline, so per scene the differences split the masked gain's distance from
+what the representation reaches with exact stages (gt_instances, the ceiling at this budget):
+
+    registration's cost  = gain(gt_poses) - gain(defaults)       (same segmentation, exact poses)
+    segmentation's cost  = gain(gt_instances) - gain(gt_poses)   (exact poses, exact Gaussians per instance)
+
+Per instance: the baseline's PSNR over its test-view pixels and its gain under each run. Prints the table and
+writes one JSON.
+
+    splatreplace bench suite --split dev --seeds 0 1 2 3 4 5 --res 96x72 --json D.json
+    splatreplace bench suite --split dev --seeds 0 1 2 3 4 5 --res 96x72 --from-segmentation --oracle gt_poses --json P.json
+    splatreplace bench suite --split dev --seeds 0 1 2 3 4 5 --res 96x72 --from-segmentation --oracle gt_instances --json I.json
+    python benchmarks/bench_suite_oracle.py --defaults D.json --gt-poses P.json --gt-instances I.json
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import tyro
+
+RUNS = ("defaults", "gt_poses", "gt_instances")
+
+
+@dataclass
+class BenchSuiteOracleConfig:
+    defaults: Tuple[Path, ...]
+    """Suite JSONs with the defaults (several when the scenes ran in parts)."""
+    gt_poses: Tuple[Path, ...]
+    """Suite JSONs of the same scenes with --from-segmentation --oracle gt_poses."""
+    gt_instances: Tuple[Path, ...]
+    """Suite JSONs of the same scenes with --from-segmentation --oracle gt_instances."""
+    out: Path = Path("benchmarks/results/suite_dev_oracle.json")
+    """Where to write the JSON."""
+
+
+IGNORED = ("oracle", "from_segmentation", "registration", "overrides")  # how a run was made, not its scenes or budget
+
+
+def rows_by_seed(paths: Tuple[Path, ...], oracle: Optional[str]) -> Tuple[Dict, Dict[int, Dict]]:
+    """The parameters the JSONs share and every scene's row by seed.
+
+    Raises:
+        ValueError: when a JSON was run with another oracle than ``oracle`` or with other parameters.
+    """
+    results = [json.loads(Path(p).read_text()) for p in paths]
+    for result, path in zip(results, paths):
+        if result["parameters"].get("oracle") != oracle:
+            raise ValueError(f"{path}: run with oracle {result['parameters'].get('oracle')!r}, expected {oracle!r}")
+        if comparable(result) != comparable(results[0]):
+            raise ValueError(f"{path} was run with other parameters than {paths[0]}")
+    return comparable(results[0]), {int(r["seed"]): r for result in results for r in result["scenes"]}
+
+
+def comparable(result: Dict) -> Dict:
+    return {"split": result["split"], **{k: v for k, v in result["parameters"].items() if k not in IGNORED}}
+
+
+def decompose(rows: Dict[str, Dict[int, Dict]]) -> Dict[str, List[Dict]]:
+    """Per scene (seeds every run has): the masked and full gains of each run, the two costs and the share of the
+    ceiling's gain the defaults reach; per instance: the baseline's PSNR and the gain under each run."""
+    scenes, instances = [], []
+    for seed in sorted(set.intersection(*(set(r) for r in rows.values()))):
+        by = {k: rows[k][seed] for k in RUNS}
+        masked = {k: by[k]["gain_masked"] for k in RUNS}
+        ceiling = masked["gt_instances"]
+        scenes.append({
+            "seed": seed,
+            "effects": by["defaults"]["effects"],
+            "classes": [f"{g['count']} {g['cls']}" for g in by["defaults"]["scene"].get("groups", [])],
+            "baseline_masked": by["defaults"]["baseline"]["psnr_masked"],
+            "gain_masked": masked,
+            "gain_full": {k: by[k]["gain_full"] for k in RUNS},
+            "registration_cost": masked["gt_poses"] - masked["defaults"],
+            "segmentation_cost": masked["gt_instances"] - masked["gt_poses"],
+            "share_of_ceiling": masked["defaults"] / ceiling if ceiling > 0.5 else None,  # a share of ~0 means little
+            "not_accepted": len(by["defaults"]["registration"]["failures"]),
+            "losing_over_1db": {k: sum(v["gain"] < -1.0 for v in by[k]["per_instance"].values()) for k in RUNS},
+        })
+        for key in sorted(set.intersection(*(set(by[k]["per_instance"]) for k in RUNS)), key=int):
+            instances.append({"seed": seed, "instance": int(key),
+                              "baseline": by["defaults"]["per_instance"][key]["baseline"],
+                              "gain": {k: by[k]["per_instance"][key]["gain"] for k in RUNS}})
+    return {"scenes": scenes, "instances": instances}
+
+
+def summarise(diff: Dict[str, List[Dict]]) -> Dict:
+    """Mean, worst and standard deviation of each run's masked gain, the mean costs, and the same means over the
+    scenes with and without coverage imbalance (the effect that makes some copies badly seen)."""
+
+    def stats(scenes: List[Dict]) -> Optional[Dict]:
+        if not scenes:
+            return None
+        out = {"scenes": len(scenes)}
+        for k in RUNS:
+            g = [s["gain_masked"][k] for s in scenes]
+            out[k] = {"mean": statistics.fmean(g), "worst": min(g), "sd": statistics.pstdev(g),
+                      "full_mean": statistics.fmean(s["gain_full"][k] for s in scenes),
+                      "full_worst": min(s["gain_full"][k] for s in scenes),
+                      "losing_over_1db": sum(s["losing_over_1db"][k] for s in scenes)}
+        out["registration_cost_mean"] = statistics.fmean(s["registration_cost"] for s in scenes)
+        out["segmentation_cost_mean"] = statistics.fmean(s["segmentation_cost"] for s in scenes)
+        return out
+
+    scenes = diff["scenes"]
+    return {"all": stats(scenes),
+            "coverage_imbalance": stats([s for s in scenes if "coverage_imbalance" in s["effects"]]),
+            "no_coverage_imbalance": stats([s for s in scenes if "coverage_imbalance" not in s["effects"]])}
+
+
+def print_table(result: Dict) -> None:
+    print(f"{'seed':>5} {'classes':<28} {'3DGS* masked':>12} {'defaults':>9} {'gt_poses':>9} {'gt_inst.':>9} "
+          f"{'reg. cost':>9} {'seg. cost':>9} {'full d / p / i':>20} {'lose>1dB d/p/i':>15}")
+    for s in result["scenes"]:
+        g, f, n = s["gain_masked"], s["gain_full"], s["losing_over_1db"]
+        print(f"{s['seed']:>5} {', '.join(s['classes']):<28} {s['baseline_masked']:>12.2f} "
+              + " ".join(f"{g[k]:>+9.2f}" for k in RUNS)
+              + f" {s['registration_cost']:>+9.2f} {s['segmentation_cost']:>+9.2f} "
+              + f"{' / '.join(f'{f[k]:+.2f}' for k in RUNS):>20} {' / '.join(str(n[k]) for k in RUNS):>15}")
+    for name, st in result["summary"].items():
+        if st is None:
+            continue
+        print(f"{name} ({st['scenes']} scenes): masked gain mean " + ", ".join(
+            f"{k} {st[k]['mean']:+.2f} (worst {st[k]['worst']:+.2f}, sd {st[k]['sd']:.2f})" for k in RUNS)
+            + f"; registration costs {st['registration_cost_mean']:+.2f}, segmentation {st['segmentation_cost_mean']:+.2f} dB")
+
+
+def main(cfg: BenchSuiteOracleConfig) -> Dict:
+    loaded = {k: rows_by_seed(paths, None if k == "defaults" else k)
+              for k, paths in zip(RUNS, (cfg.defaults, cfg.gt_poses, cfg.gt_instances))}
+    parameters = loaded["defaults"][0]
+    for k in RUNS[1:]:
+        if loaded[k][0] != parameters:
+            raise ValueError(f"the {k} runs differ from the defaults in more than the oracle: {loaded[k][0]} "
+                             f"against {parameters}")
+    diff = decompose({k: rows for k, (_, rows) in loaded.items()})
+    if not diff["scenes"]:
+        raise ValueError("no scene was run by all three")
+    result = {"benchmark": "suite_oracle", "parameters": parameters,
+              "runs": {k: [Path(p).name for p in paths] for k, paths in zip(RUNS, (cfg.defaults, cfg.gt_poses, cfg.gt_instances))},
+              "time_s": {k: sum(r["time_s"]["ours"] for r in rows.values()) for k, (_, rows) in loaded.items()},
+              "summary": summarise(diff), **diff}
+    print_table(result)
+    cfg.out.parent.mkdir(parents=True, exist_ok=True)
+    cfg.out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {cfg.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(BenchSuiteOracleConfig))

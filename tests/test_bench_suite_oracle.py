@@ -1,0 +1,72 @@
+"""benchmarks/bench_suite_oracle.py: the suite's gain split into what registration and segmentation cost."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_suite_oracle.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_suite_oracle", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass looks its module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def suite_json(path: Path, oracle, gains, instance_gains, effects=("far_test_views",), res="96x72") -> Path:
+    """A suite result with one scene per seed: ``gains`` {seed: masked gain}; ``instance_gains`` {seed: [gain]}."""
+    parameters = {"res": res, "n_train": 48, "base_iterations": 1500, "registration": "ours", "overrides": [],
+                  "from_segmentation": oracle is not None, **({"oracle": oracle} if oracle else {})}
+    scenes = [{
+        "seed": seed, "effects": list(effects), "scene": {"groups": [{"cls": "crate", "count": 3}]},
+        "baseline": {"psnr_masked": 20.0}, "gain_masked": gain, "gain_full": gain / 2,
+        "per_instance": {str(i + 1): {"baseline": 20.0, "gain": g} for i, g in enumerate(instance_gains[seed])},
+        "registration": {"failures": [2] if oracle is None else []}, "time_s": {"ours": 60.0},
+    } for seed, gain in gains.items()]
+    path.write_text(json.dumps({"split": "dev", "parameters": parameters, "scenes": scenes}))
+    return path
+
+
+def test_costs_are_the_differences_between_the_runs(bench, tmp_path, capsys):
+    d = suite_json(tmp_path / "d.json", None, {0: 0.5, 1: 2.0}, {0: [-1.5, 0.2], 1: [2.0, 1.0]})
+    p = suite_json(tmp_path / "p.json", "gt_poses", {0: 1.0, 1: 2.2}, {0: [0.5, 0.2], 1: [2.0, 1.5]})
+    i = suite_json(tmp_path / "i.json", "gt_instances", {0: 1.5, 1: 2.1}, {0: [0.6, 0.3], 1: [2.2, 1.4]})
+    result = bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), gt_instances=(i,),
+                                                     out=tmp_path / "out.json"))
+    first, second = result["scenes"]
+    assert first["registration_cost"] == pytest.approx(0.5) and first["segmentation_cost"] == pytest.approx(0.5)
+    assert first["share_of_ceiling"] == pytest.approx(0.5 / 1.5)
+    assert second["registration_cost"] == pytest.approx(0.2) and second["segmentation_cost"] == pytest.approx(-0.1)
+    assert first["losing_over_1db"] == {"defaults": 1, "gt_poses": 0, "gt_instances": 0}
+    assert first["not_accepted"] == 1
+    summary = result["summary"]["all"]
+    assert summary["gt_instances"]["mean"] == pytest.approx(1.8) and summary["defaults"]["worst"] == pytest.approx(0.5)
+    assert summary["registration_cost_mean"] == pytest.approx(0.35)
+    assert result["summary"]["coverage_imbalance"] is None and result["summary"]["no_coverage_imbalance"]["scenes"] == 2
+    assert len(result["instances"]) == 4 and result["instances"][0]["gain"]["gt_poses"] == pytest.approx(0.5)
+    assert json.loads((tmp_path / "out.json").read_text())["summary"] == result["summary"]
+    assert "registration costs +0.35" in capsys.readouterr().out
+
+
+def test_runs_of_other_scenes_or_oracles_are_refused(bench, tmp_path):
+    d = suite_json(tmp_path / "d.json", None, {0: 0.5}, {0: [0.1]})
+    p = suite_json(tmp_path / "p.json", "gt_poses", {0: 1.0}, {0: [0.2]})
+    i = suite_json(tmp_path / "i.json", "gt_instances", {0: 1.5}, {0: [0.3]})
+    other_res = suite_json(tmp_path / "r.json", "gt_instances", {0: 1.5}, {0: [0.3]}, res="128x96")
+    out = tmp_path / "out.json"
+    with pytest.raises(ValueError, match="expected 'gt_poses'"):
+        bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(i,), gt_instances=(i,), out=out))
+    with pytest.raises(ValueError, match="differ from the defaults in more than the oracle"):
+        bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), gt_instances=(other_res,), out=out))
+    elsewhere = suite_json(tmp_path / "e.json", "gt_instances", {5: 1.5}, {5: [0.3]})
+    with pytest.raises(ValueError, match="no scene was run by all three"):
+        bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), gt_instances=(elsewhere,), out=out))
+    assert not out.exists()
