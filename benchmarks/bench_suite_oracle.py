@@ -28,6 +28,8 @@ from typing import Dict, List, Optional, Tuple
 import tyro
 
 RUNS = ("defaults", "gt_poses", "gt_instances")
+WRONG_POSE_DEG = 5.0
+"""As the suite counts a wrong pose (``splatreplace_ns.bench.suite.WRONG_POSE_DEG``)."""
 
 
 @dataclass
@@ -85,11 +87,39 @@ def decompose(rows: Dict[str, Dict[int, Dict]]) -> Dict[str, List[Dict]]:
             "not_accepted": len(by["defaults"]["registration"]["failures"]),
             "losing_over_1db": {k: sum(v["gain"] < -1.0 for v in by[k]["per_instance"].values()) for k in RUNS},
         })
+        registered = {int(r["gt_id"]): r for r in by["defaults"]["registration"].get("per_instance", [])
+                      if r.get("gt_id") is not None}
         for key in sorted(set.intersection(*(set(by[k]["per_instance"]) for k in RUNS)), key=int):
+            entry = registered.get(int(key))
             instances.append({"seed": seed, "instance": int(key),
                               "baseline": by["defaults"]["per_instance"][key]["baseline"],
-                              "gain": {k: by[k]["per_instance"][key]["gain"] for k in RUNS}})
+                              "gain": {k: by[k]["per_instance"][key]["gain"] for k in RUNS},
+                              "defaults": instance_status(entry),
+                              "rotation_error_deg": None if entry is None else entry.get(
+                                  "rotation_error_deg" if entry["success"] else "proposed_rotation_error_deg")})
     return {"scenes": scenes, "instances": instances}
+
+
+def instance_status(entry: Optional[Dict]) -> str:
+    """How the defaults treated an instance: its class's template (no registration entry), replaced under a pose
+    within or beyond WRONG_POSE_DEG of the truth, or not replaced."""
+    if entry is None:
+        return "template"
+    if not entry["success"]:
+        return "not replaced"
+    error = entry.get("rotation_error_deg")
+    return "replaced" if error is None or error <= WRONG_POSE_DEG else "replaced, wrong"
+
+
+def by_status(instances: List[Dict]) -> Dict[str, Dict]:
+    """Per status of the defaults: how many instances, and their mean gain under the defaults and with exact poses
+    (the registration's cost where it lies: refusals, or poses accepted but off)."""
+    out = {}
+    for status in ("template", "replaced", "replaced, wrong", "not replaced"):
+        rows = [i for i in instances if i["defaults"] == status]
+        if rows:
+            out[status] = {"count": len(rows), **{f"gain_{k}": statistics.fmean(i["gain"][k] for i in rows) for k in RUNS}}
+    return out
 
 
 def summarise(diff: Dict[str, List[Dict]]) -> Dict:
@@ -111,7 +141,7 @@ def summarise(diff: Dict[str, List[Dict]]) -> Dict:
         return out
 
     scenes = diff["scenes"]
-    return {"all": stats(scenes),
+    return {"all": stats(scenes), "instances_by_status": by_status(diff["instances"]),
             "coverage_imbalance": stats([s for s in scenes if "coverage_imbalance" in s["effects"]]),
             "no_coverage_imbalance": stats([s for s in scenes if "coverage_imbalance" not in s["effects"]])}
 
@@ -125,8 +155,11 @@ def print_table(result: Dict) -> None:
               + " ".join(f"{g[k]:>+9.2f}" for k in RUNS)
               + f" {s['registration_cost']:>+9.2f} {s['segmentation_cost']:>+9.2f} "
               + f"{' / '.join(f'{f[k]:+.2f}' for k in RUNS):>20} {' / '.join(str(n[k]) for k in RUNS):>15}")
+    for status, st in result["summary"]["instances_by_status"].items():
+        print(f"instances {status} by the defaults: {st['count']}, mean gain " + ", ".join(
+            f"{k} {st[f'gain_{k}']:+.2f}" for k in RUNS))
     for name, st in result["summary"].items():
-        if st is None:
+        if st is None or name == "instances_by_status":
             continue
         print(f"{name} ({st['scenes']} scenes): masked gain mean " + ", ".join(
             f"{k} {st[k]['mean']:+.2f} (worst {st[k]['worst']:+.2f}, sd {st[k]['sd']:.2f})" for k in RUNS)

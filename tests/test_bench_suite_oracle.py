@@ -29,7 +29,10 @@ def suite_json(path: Path, oracle, gains, instance_gains, effects=("far_test_vie
         "seed": seed, "effects": list(effects), "scene": {"groups": [{"cls": "crate", "count": 3}]},
         "baseline": {"psnr_masked": 20.0}, "gain_masked": gain, "gain_full": gain / 2,
         "per_instance": {str(i + 1): {"baseline": 20.0, "gain": g} for i, g in enumerate(instance_gains[seed])},
-        "registration": {"failures": [2] if oracle is None else []}, "time_s": {"ours": 60.0},
+        "registration": {"failures": [2] if oracle is None else [], "per_instance": [
+            {"gt_id": 1, "success": True, "rotation_error_deg": 2.0 if seed == 0 else 30.0},
+            {"gt_id": 2, "success": False, "rotation_error_deg": 0.0, "proposed_rotation_error_deg": 1.0},
+        ] if oracle is None else []}, "time_s": {"ours": 60.0},
     } for seed, gain in gains.items()]
     path.write_text(json.dumps({"split": "dev", "parameters": parameters, "scenes": scenes}))
     return path
@@ -52,6 +55,10 @@ def test_costs_are_the_differences_between_the_runs(bench, tmp_path, capsys):
     assert summary["registration_cost_mean"] == pytest.approx(0.35)
     assert result["summary"]["coverage_imbalance"] is None and result["summary"]["no_coverage_imbalance"]["scenes"] == 2
     assert len(result["instances"]) == 4 and result["instances"][0]["gain"]["gt_poses"] == pytest.approx(0.5)
+    assert [i["defaults"] for i in result["instances"]] == ["replaced", "not replaced", "replaced, wrong", "not replaced"]
+    assert result["instances"][1]["rotation_error_deg"] == 1.0  # a refused instance: the pose it refused
+    refused = result["summary"]["instances_by_status"]["not replaced"]
+    assert refused["count"] == 2 and refused["gain_gt_poses"] == pytest.approx((0.2 + 1.5) / 2)
     assert json.loads((tmp_path / "out.json").read_text())["summary"] == result["summary"]
     assert "registration costs +0.35" in capsys.readouterr().out
 
