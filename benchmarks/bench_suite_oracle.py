@@ -27,6 +27,8 @@ from typing import Dict, List, Optional, Tuple
 
 import tyro
 
+from splatreplace_ns.bench.output import write_result_json
+
 RUNS = ("defaults", "gt_poses", "gt_instances")
 WRONG_POSE_DEG = 5.0
 """As the suite counts a wrong pose (``splatreplace_ns.bench.suite.WRONG_POSE_DEG``)."""
@@ -182,9 +184,7 @@ def main(cfg: BenchSuiteOracleConfig) -> Dict:
               "time_s": {k: sum(r["time_s"]["ours"] for r in rows.values()) for k, (_, rows) in loaded.items()},
               "summary": summarise(diff), **diff}
     print_table(result)
-    cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    cfg.out.write_text(json.dumps(result, indent=1))
-    print(f"wrote {cfg.out}")
+    write_result_json(result, cfg.out)
     return result
 
 
