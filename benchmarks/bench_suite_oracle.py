@@ -69,13 +69,12 @@ def comparable(result: Dict) -> Dict:
 
 
 def decompose(rows: Dict[str, Dict[int, Dict]]) -> Dict[str, List[Dict]]:
-    """Per scene (seeds every run has): the masked and full gains of each run, the two costs and the share of the
-    ceiling's gain the defaults reach; per instance: the baseline's PSNR and the gain under each run."""
+    """Per scene (seeds every run has): the masked and full gains of each run and the two costs; per instance: the
+    baseline's PSNR, the gain under each run and how the defaults treated it."""
     scenes, instances = [], []
     for seed in sorted(set.intersection(*(set(r) for r in rows.values()))):
         by = {k: rows[k][seed] for k in RUNS}
         masked = {k: by[k]["gain_masked"] for k in RUNS}
-        ceiling = masked["gt_instances"]
         scenes.append({
             "seed": seed,
             "effects": by["defaults"]["effects"],
@@ -85,7 +84,6 @@ def decompose(rows: Dict[str, Dict[int, Dict]]) -> Dict[str, List[Dict]]:
             "gain_full": {k: by[k]["gain_full"] for k in RUNS},
             "registration_cost": masked["gt_poses"] - masked["defaults"],
             "segmentation_cost": masked["gt_instances"] - masked["gt_poses"],
-            "share_of_ceiling": masked["defaults"] / ceiling if ceiling > 0.5 else None,  # a share of ~0 means little
             "not_accepted": len(by["defaults"]["registration"]["failures"]),
             "losing_over_1db": {k: sum(v["gain"] < -1.0 for v in by[k]["per_instance"].values()) for k in RUNS},
         })

@@ -40,7 +40,6 @@ def test_costs_are_the_differences_between_the_runs(bench, tmp_path, capsys):
                                                      out=tmp_path / "out.json"))
     first, second = result["scenes"]
     assert first["registration_cost"] == pytest.approx(0.5) and first["segmentation_cost"] == pytest.approx(0.5)
-    assert first["share_of_ceiling"] == pytest.approx(0.5 / 1.5)
     assert second["registration_cost"] == pytest.approx(0.2) and second["segmentation_cost"] == pytest.approx(-0.1)
     assert first["losing_over_1db"] == {"defaults": 1, "gt_poses": 0, "gt_instances": 0}
     assert first["not_accepted"] == 1
