@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from splatreplace_ns.register.gate import (
-    choose_pose, instance_id_maps, pick_with_margin, yaw_rotation,
+    choose_pose, instance_id_maps, mean_view_psnr, pick_with_margin, pooled_psnr, yaw_rotation,
 )
 from splatreplace_ns.register.variants import registration_variant
 from splatreplace_ns.register.pipeline import RegistrationConfig
@@ -36,7 +36,7 @@ def _setup(with_handle: bool = True):
     return scene, labels, T, images, render, ids, rgb
 
 
-def _choose(with_handle: bool, candidates_deg, count_renders: bool = False):
+def _choose(with_handle: bool, candidates_deg, count_renders: bool = False, per_view: bool = False):
     scene, labels, T, images, render, ids, rgb = _setup(with_handle)
     calls = []
 
@@ -46,7 +46,7 @@ def _choose(with_handle: bool, candidates_deg, count_renders: bool = False):
 
     choice = choose_pose(scene, labels, 2, 1, [_turned(T, d) for d in candidates_deg], images,
                          counted if count_renders else render, ids, rgb, margin_db=1.0, rival_deg=20.0,
-                         max_views=4)
+                         max_views=4, per_view=per_view)
     return choice, calls
 
 
@@ -58,9 +58,10 @@ def test_pick_with_margin_against_the_best_rival_turned_far_enough():
     assert pick_with_margin([20.0, 19.9], poses[:2], 1.0, 20.0) == (0, None, True)  # no rival at all
 
 
-def test_the_true_pose_beats_the_half_turn_that_puts_the_handle_on_the_wrong_side():
+@pytest.mark.parametrize("per_view", [False, True])
+def test_the_true_pose_beats_the_half_turn_that_puts_the_handle_on_the_wrong_side(per_view):
     for order in ((0.0, 180.0), (180.0, 0.0)):  # whichever comes first
-        choice, _ = _choose(with_handle=True, candidates_deg=order)
+        choice, _ = _choose(with_handle=True, candidates_deg=order, per_view=per_view)
         assert order[choice.chosen] == 0.0 and choice.rival is not None
         assert choice.accepted, choice.reason
         assert choice.margin_db > 1.0
@@ -111,3 +112,47 @@ def test_between_a_pose_and_its_polish_the_one_that_explains_the_images_better_i
     for pair, better in (([T, _turned(T, 6.0)], 0), ([_turned(T, 6.0), T], 1)):
         check = choose_pose(scene, labels, 2, 1, pair, images, render, ids, rgb, 0.0, 180.0, 4)
         assert check.chosen == better and check.rival is None and check.accepted
+
+
+def test_the_mean_of_the_views_psnr_is_not_outweighed_by_one_view_every_pose_renders_badly():
+    torch.manual_seed(0)
+    target = [torch.rand(200, 3) * 0.8 + 0.1, torch.rand(200, 3) * 0.8 + 0.1]
+    wrong_everywhere = 1.0 - target[1]  # a view no pose explains (say, an occluder)
+    noise = torch.randn(200, 3)
+    right = [target[0] + 0.01 * noise, wrong_everywhere]  # 40 dB in the first view
+    turned = [target[0] + 0.1 * noise, wrong_everywhere]  # 20 dB there
+    # one view: each score is that view's PSNR (gain ~1 here), and the two statistics agree
+    assert mean_view_psnr(right[:1], target[:1]) == pytest.approx(pooled_psnr(right[:1], target[:1]))
+    per_view_gap = mean_view_psnr(right, target) - mean_view_psnr(turned, target)
+    pooled_gap = pooled_psnr(right, target) - pooled_psnr(turned, target)
+    # the first view tells the poses apart by 20 dB; averaged with the view that cannot, half of it remains
+    assert per_view_gap == pytest.approx(10.0, abs=1.0)
+    assert pooled_gap < 1.0  # pooled, the bad view's error swamps the evidence
+
+
+def test_the_mean_of_the_views_psnr_skips_views_without_pixels_and_fits_a_gain():
+    target = [torch.full((50, 3), 0.5), torch.zeros(0, 3), torch.full((50, 3), 0.4)]
+    dim = [t * 0.5 for t in target]  # the copy lit half as bright: a gain of 2 explains both views exactly
+    assert mean_view_psnr(dim, target) == pytest.approx(50.0)  # capped: a perfect explanation
+    assert pooled_psnr(dim, target) == pytest.approx(50.0)
+
+
+def test_the_margin_on_the_pair_s_own_pixels_does_not_shrink_with_a_far_off_candidate():
+    scene, labels, T, images, render, ids, rgb = _setup(with_handle=True)
+    shift = torch.eye(4)
+    shift[:3, 3] = torch.tensor([0.0, -1.2, 0.0])  # a candidate that puts the copy 1.2 m beside the instance
+    near, turned, far = _turned(T, 0.0), _turned(T, 180.0), _turned(T, 0.0) @ shift
+
+    def margin(candidates, where):
+        choice = choose_pose(scene, labels, 2, 1, candidates, images, render, ids, rgb, 1.0, 20.0, 4,
+                             margin_pixels=where)
+        assert choice.chosen == 0 and choice.rival is not None
+        return choice.margin_db
+
+    # the far candidate's pixels, where the true pose and the half turn render alike, dilute the margin on all
+    # pixels; on the pair's own pixels it is the same with or without that candidate
+    assert margin([near, turned, far], "all") < margin([near, turned], "all") - 0.1
+    assert margin([near, turned, far], "pair") == pytest.approx(margin([near, turned], "pair"), abs=1e-4)
+    assert margin([near, turned], "pair") == pytest.approx(margin([near, turned], "all"), abs=1e-4)
+    with pytest.raises(ValueError, match="margin_pixels"):
+        choose_pose(scene, labels, 2, 1, [near, turned], images, render, ids, rgb, 1.0, 20.0, 4, margin_pixels="some")

@@ -722,7 +722,8 @@ class SplatReplacePipeline(VanillaPipeline):
                 continue
             choice = choose_pose(scene, labels, int(iid), anchor, [c["transform"] for c in entry["candidates"]],
                                  images, render, id_maps, rgb_before, config.image_margin_db, config.image_rival_deg,
-                                 config.image_views)
+                                 config.image_views, per_view=config.image_score == "per_view",
+                                 margin_pixels=config.image_margin_pixels)
             entry["image_choice"] = choice.as_dict()
             if choice.chosen is None:
                 CONSOLE.log(f"instance {iid}: {choice.reason}; registration's decision stands")
@@ -732,7 +733,7 @@ class SplatReplacePipeline(VanillaPipeline):
                                              config)
             if note and not np.allclose(T, chosen["transform"]):  # the polish is kept where the images agree
                 check = choose_pose(scene, labels, int(iid), anchor, [chosen["transform"], T], images, render, id_maps,
-                                    rgb_before, 0.0, 180.0, config.image_views)
+                                    rgb_before, 0.0, 180.0, config.image_views, per_view=config.image_score == "per_view")
                 if check.chosen == 0:
                     T, fitness = np.asarray(chosen["transform"]), chosen["fitness"]
                     note = " (the upright polish explains the training pixels worse: not kept)"

@@ -227,12 +227,15 @@ def instance_views(id_maps: Mapping[int, Tensor], instance: int, max_views: int,
 
 def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, poses: Sequence[Tensor],
                    images: Sequence[Tensor], render: RenderFn, views: Sequence[int], id_maps: Mapping[int, Tensor],
-                   rgb_before: Mapping[int, Tensor]) -> Tuple[float, List[float], int]:
+                   rgb_before: Mapping[int, Tensor], per_view: bool = False) -> Tuple[float, List[float], int]:
     """How well instance ``instance``'s training pixels are explained by its own Gaussians and by the template
     instance ``anchor``'s Gaussians placed under each pose, with the rest of the scene around them.
 
     The compared pixels are the same for every pose: those the instance covers in the scene as it is, or any
-    placed copy covers (weight ≥ 0.5), in ``views``. PSNR after a per-channel gain (:func:`colour_fitted`).
+    placed copy covers (weight ≥ 0.5), in ``views``. PSNR after a per-channel gain (:func:`colour_fitted`),
+    over all compared pixels (``per_view=False``), or per view and averaged over the views (``per_view=True``:
+    each view is one piece of evidence, so one view rendered badly under every pose does not outweigh the
+    others, see :func:`mean_view_psnr`).
 
     Args:
         scene: Gaussians (N) with GAUSSIAN_KEYS; labels: [N] long instance ids.
@@ -262,8 +265,32 @@ def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, a
         for k, (rgb, _) in enumerate(renders):
             cand_px[k].append(rgb[footprint].float())
     target_all = torch.cat(target_px)
-    own = psnr(colour_fitted(torch.cat(own_px), target_all), target_all)
-    return own, [psnr(colour_fitted(torch.cat(px), target_all), target_all) for px in cand_px], int(target_all.shape[0])
+    score = mean_view_psnr if per_view else pooled_psnr
+    own = score(own_px, target_px)
+    return own, [score(px, target_px) for px in cand_px], int(target_all.shape[0])
+
+
+def pooled_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
+    """PSNR over the pixels of every view together, after one per-channel gain.
+
+    Args:
+        pred, target: per view, [P_v, 3] colours.
+    """
+    pred_all, target_all = torch.cat(list(pred)), torch.cat(list(target))
+    return psnr(colour_fitted(pred_all, target_all), target_all)
+
+
+def mean_view_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
+    """Mean over views of each view's PSNR, each after its own per-channel gain (a view that no pose explains
+    then weighs as one view, in its error and in its gain).
+
+    Args:
+        pred, target: per view, [P_v, 3] colours (views without pixels are skipped).
+    """
+    scores = [psnr(colour_fitted(p, t), t) for p, t in zip(pred, target) if p.shape[0] > 0]
+    if not scores:
+        raise ValueError("mean_view_psnr: no view has pixels to compare")
+    return sum(scores) / len(scores)
 
 
 @dataclass
@@ -284,12 +311,19 @@ class PoseChoice:
     pixels: int
     accepted: bool
     reason: str
+    pair_scores: Optional[Tuple[float, float]] = None
+    """dB of the chosen candidate and of its rival compared on their own pixels only (the instance's and the two
+    placed copies'), when the margin was measured there (``margin_pixels="pair"``)."""
 
     @property
     def margin_db(self) -> Optional[float]:
         if self.chosen is None:
             return None
-        return math.inf if self.rival is None else self.scores[self.chosen] - self.scores[self.rival]
+        if self.rival is None:
+            return math.inf
+        if self.pair_scores is not None:
+            return self.pair_scores[0] - self.pair_scores[1]
+        return self.scores[self.chosen] - self.scores[self.rival]
 
     def as_dict(self) -> Dict:
         out = asdict(self)
@@ -323,7 +357,8 @@ def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], marg
 def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int,
                 candidates: Sequence[Tensor], images: Sequence[Tensor], render: RenderFn,
                 id_maps: Mapping[int, Tensor], rgb_before: Mapping[int, Tensor], margin_db: float,
-                rival_deg: float, max_views: int, min_pixels: int = 16) -> PoseChoice:
+                rival_deg: float, max_views: int, min_pixels: int = 16, per_view: bool = False,
+                margin_pixels: str = "all") -> PoseChoice:
     """Analysis by synthesis: each candidate pose of ``instance`` is judged by rendering the template instance
     ``anchor`` in its place, with the rest of the scene, into the training views that show the instance most, and
     comparing with the training images (:func:`explain_scores`). The best-explaining candidate is chosen; it is
@@ -332,10 +367,16 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
 
     Args:
         candidates: (C,) [4, 4] transforms, template ≈ T · instance (world), as registration stores them.
+        per_view: score by the mean of the views' PSNR instead of the PSNR over all views' pixels.
+        margin_pixels: "all": the margin is measured on the pixels every candidate is ranked on (the instance's
+            and any placed copy's); "pair": on the pixels of the instance, the chosen copy and its rival only, so
+            that pixels neither of the two touches (those of far-off candidates) do not shrink the margin.
         id_maps, rgb_before: from :func:`instance_id_maps` over every training view.
     Returns:
         :class:`PoseChoice` (candidates with the same transform are rendered once).
     """
+    if margin_pixels not in ("all", "pair"):
+        raise ValueError(f"margin_pixels must be 'all' or 'pair', got {margin_pixels!r}")
     views = instance_views(id_maps, instance, max_views, min_pixels)
     if not candidates or not views:
         why = "no candidate pose" if not candidates else "not seen in any training view: nothing to compare"
@@ -351,17 +392,23 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
         same_as.append(match)
     poses = [torch.linalg.inv(transforms[j]) for j in unique]  # template → instance
     own, unique_scores, pixels = explain_scores(scene, labels, instance, anchor, poses, images, render, views,
-                                                id_maps, rgb_before)
+                                                id_maps, rgb_before, per_view)
     scores = [unique_scores[u] for u in same_as]
     chosen, rival, accepted = pick_with_margin(scores, transforms, margin_db, rival_deg)
+    pair = None
+    if rival is not None and margin_pixels == "pair":
+        _, pair_list, _ = explain_scores(scene, labels, instance, anchor, [poses[same_as[chosen]], poses[same_as[rival]]],
+                                         images, render, views, id_maps, rgb_before, per_view)
+        pair = (pair_list[0], pair_list[1])
+        accepted = pair[0] - pair[1] >= margin_db
     if rival is None:
         reason = "is the only pose among the candidates"
     else:
-        gap = scores[chosen] - scores[rival]
+        gap = scores[chosen] - scores[rival] if pair is None else pair[0] - pair[1]
         turn = _turn_deg(transforms[chosen], transforms[rival])
         reason = (f"explains its training pixels {gap:.2f} dB better than the best pose turned {turn:.0f}° from it "
                   f"(margin {margin_db:g} dB)" + ("" if accepted else ": ambiguous, left as it was"))
-    return PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, reason)
+    return PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, reason, pair)
 
 
 def gate_registrations(

@@ -27,7 +27,7 @@ import time
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Literal, Optional, Sequence
 
 import numpy as np
 import torch
@@ -123,6 +123,11 @@ class RegistrationConfig:
             instance stays as it was.
         image_rival_deg: candidates closer than this to the chosen one are the same pose, not rivals.
         image_views: training views compared per instance (those where it covers the most pixels).
+        image_score: "pooled": a candidate's PSNR over all compared views' pixels together; "per_view": the mean
+            of each view's PSNR (each view one piece of evidence; see docs/deviations.md for what each measured).
+        image_margin_pixels: where the margin between the chosen candidate and its rival is measured: "all": the
+            pixels every candidate is ranked on (the instance's and any placed copy's), "pair": the instance's and
+            those two copies' only (pixels of far-off candidates, where the two render alike, do not shrink it).
     """
 
     n_azimuth: int = 5
@@ -163,10 +168,16 @@ class RegistrationConfig:
     image_margin_db: float = 1.0
     image_rival_deg: float = 20.0
     image_views: int = 6
+    image_score: Literal["pooled", "per_view"] = "pooled"
+    image_margin_pixels: Literal["all", "pair"] = "all"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"RegistrationConfig.method must be one of {METHODS}, got {self.method!r}")
+        if self.image_score not in ("pooled", "per_view"):
+            raise ValueError(f"RegistrationConfig.image_score must be 'pooled' or 'per_view', got {self.image_score!r}")
+        if self.image_margin_pixels not in ("all", "pair"):
+            raise ValueError(f"RegistrationConfig.image_margin_pixels must be 'all' or 'pair', got {self.image_margin_pixels!r}")
         if self.select not in ("inliers", "photometric"):
             raise ValueError(f"RegistrationConfig.select must be 'inliers' or 'photometric', got {self.select!r}")
         if self.top_k < 1 or self.n_azimuth < 1 or self.n_elevation < 1:
