@@ -401,14 +401,15 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
                                          images, render, views, id_maps, rgb_before, per_view)
         pair = (pair_list[0], pair_list[1])
         accepted = pair[0] - pair[1] >= margin_db
+    choice = PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, "", pair)
     if rival is None:
-        reason = "is the only pose among the candidates"
+        choice.reason = "is the only pose among the candidates"
     else:
-        gap = scores[chosen] - scores[rival] if pair is None else pair[0] - pair[1]
         turn = _turn_deg(transforms[chosen], transforms[rival])
-        reason = (f"explains its training pixels {gap:.2f} dB better than the best pose turned {turn:.0f}° from it "
-                  f"(margin {margin_db:g} dB)" + ("" if accepted else ": ambiguous, left as it was"))
-    return PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, reason, pair)
+        choice.reason = (f"explains its training pixels {choice.margin_db:.2f} dB better than the best pose turned "
+                         f"{turn:.0f}° from it (margin {margin_db:g} dB)"
+                         + ("" if accepted else ": ambiguous, left as it was"))
+    return choice
 
 
 def gate_registrations(
