@@ -251,3 +251,55 @@ def test_zero_mix_puts_the_colour_in_the_offsets():
     sh_before = torch.cat((params["features_dc"][:, None], params["features_rest"]), dim=1)
     own = scene.instance_id == 1
     assert torch.allclose(scene.sh[own][:10], sh_before[5:15], atol=1e-5)
+
+
+def test_colour_gain_multiplies_the_colour_in_every_direction():
+    from splatreplace_ns.render.sh import sh_to_color
+    from splatreplace_ns.template.compose import apply_colour_gain
+
+    g = torch.Generator().manual_seed(3)
+    coeffs = torch.randn(50, 16, 3, generator=g) * 0.2
+    coeffs[:, 0] += 1.0  # colours well above the clamp at 0, where the gain is exact
+    log_gain = torch.randn(50, 3, generator=g) * 0.3
+    dirs = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
+    before = sh_to_color(3, dirs, coeffs)
+    after = sh_to_color(3, dirs, apply_colour_gain(coeffs, log_gain))
+    assert (before > 0).all()
+    assert torch.allclose(after, before * torch.exp(log_gain), atol=1e-5)
+    assert torch.allclose(apply_colour_gain(coeffs, torch.zeros(50, 3)), coeffs)
+
+
+def test_colour_gain_is_per_instance_and_survives_the_rotation():
+    params, labels = _random_scene(n_bg=5, n_inst=(20, 20))
+    T2 = _pose([0.0, 0.0, 1.2], [0.5, 0.0, 0.0])
+    out, table = build_templates(params, labels, {1: "a", 2: "a"}, {1: torch.eye(4), 2: T2}, {"a": 1})
+    q, R, t = instance_poses(table.q0, table.t0, torch.zeros(2, 6))
+    sh = torch.cat((out["features_dc"][:, None], out["features_rest"]), dim=1)
+    args = (out["means"], out["quats"], out["scales"], out["opacities"], sh, out["sh_offsets"],
+            out["template_class"][:, 0].long(), table.class_index, table.slot, table.ids, q, R, t)
+    gain = torch.zeros(2, 3)
+    gain[list(table.ids).index(2)] = torch.tensor([-0.5, 0.0, 0.2])
+    plain, gained = compose_scene(*args), compose_scene(*args, colour_gain=gain)
+    from splatreplace_ns.template.compose import apply_colour_gain
+
+    first = plain.instance_id == 1
+    second = plain.instance_id == 2
+    assert torch.equal(gained.sh[plain.instance_id == 0], plain.sh[plain.instance_id == 0])  # background
+    assert torch.allclose(gained.sh[first], plain.sh[first])  # instance 1: gain 1
+    # instance 2: its rotated colours times the gain (the gain commutes with the SH rotation)
+    expected = apply_colour_gain(plain.sh[second], gain[list(table.ids).index(2)].expand(int(second.sum()), 3))
+    assert torch.allclose(gained.sh[second], expected, atol=1e-5)
+
+
+def test_a_loss_on_one_copy_reaches_only_its_colour_gain():
+    params, labels = _random_scene(n_bg=0, n_inst=(10, 10))
+    out, table = build_templates(params, labels, {1: "a", 2: "a"}, {1: torch.eye(4), 2: torch.eye(4)}, {"a": 1})
+    q, R, t = instance_poses(table.q0, table.t0, torch.zeros(2, 6))
+    sh = torch.cat((out["features_dc"][:, None], out["features_rest"]), dim=1)
+    gain = torch.zeros(2, 3, requires_grad=True)
+    scene = compose_scene(out["means"], out["quats"], out["scales"], out["opacities"], sh, out["sh_offsets"],
+                          out["template_class"][:, 0].long(), table.class_index, table.slot, table.ids, q, R, t,
+                          colour_gain=gain)
+    scene.sh[scene.instance_id == 2].sum().backward()
+    row = list(table.ids).index(2)
+    assert (gain.grad[row] != 0).all() and (gain.grad[1 - row] == 0).all()

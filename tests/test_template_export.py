@@ -95,3 +95,17 @@ def test_offset_counts_report_kept_of_all():
     bits, values = pack_offsets(offsets, 1e-3)
     scene = _tiny_instanced({"offsets_bits_7": bits, "offsets_values_7": values})
     assert offset_counts(scene.arrays) == (2, 36)
+
+
+def test_a_stored_colour_gain_is_applied_when_composing():
+    from splatreplace_ns.template.compose import apply_colour_gain
+
+    offsets = np.random.default_rng(2).normal(0.5, 0.2, (3, 4, 3)).astype(np.float32)
+    bits, values = pack_offsets(offsets, 0.0)
+    entry = {"offsets_bits_7": bits, "offsets_values_7": values}
+    plain = _tiny_instanced(dict(entry)).compose()
+    gain = np.array([[0.3, -0.2, 0.0]], np.float32)
+    gained = _tiny_instanced({**entry, "colour_gain": gain}).compose()
+    assert torch.equal(gained.sh[:1], plain.sh[:1])  # the background Gaussian
+    assert torch.allclose(gained.sh[1:], apply_colour_gain(plain.sh[1:], torch.from_numpy(gain).expand(3, 3)), atol=1e-6)
+    assert not torch.allclose(gained.sh[1:], plain.sh[1:])

@@ -71,6 +71,7 @@ def test_instances_are_replaced_by_one_shared_template(replaced):
     assert model.gauss_params["sh_offsets"].abs().sum() > 0
     assert model.instance_pose_delta.abs().sum() > 0
     assert torch.isfinite(model.instance_pose_delta).all()
+    assert model.instance_colour_gain.shape == (3, 3) and not model.instance_colour_gain.any()  # off by default
     # the instances' copies of the template lie where the crates are (within the crate's size)
     poses = {int(i["id"]): i["transform_matrix"] for i in pipeline.datamanager.train_dataparser_outputs.metadata["instances"]}
     for iid in (1, 2, 3):
@@ -177,3 +178,38 @@ def test_rendered_instance_ids_follow_the_replaced_instances(replaced):
             if b.sum() > 20:
                 ious.append(float((a & b).sum()) / float((a | b).sum()))
     assert ious and float(np.mean(ious)) > 0.6, ious
+
+
+def test_a_copy_colour_gain_is_rendered_stored_and_exported(replaced, tmp_path):
+    from splatreplace_ns.template.export import instanced_arrays, load_instanced, save_instanced
+
+    _, _, trainer = replaced
+    model = trainer.pipeline.model
+    saved, step = model.instance_colour_gain.detach().clone(), model.step
+    model.config.copy_colour_gain = True
+    try:
+        with torch.no_grad():
+            model.instance_colour_gain.copy_(torch.tensor([[0.2, 0.0, -0.3], [0.0, 0.0, 0.0], [-0.1, 0.1, 0.0]]))
+            scene = model.composed_scene()
+        row = list(model.instance_table.ids.tolist()).index(1)
+        dc = scene.sh[scene.instance_id == 1][:, 0]
+        model.config.copy_colour_gain = False
+        with torch.no_grad():
+            plain_dc = model.composed_scene().sh[scene.instance_id == 1][:, 0]
+        model.config.copy_colour_gain = True
+        gain = torch.exp(model.instance_colour_gain.detach()[row])
+        # the DC colour (C0 · dc + 0.5) of instance 1's copy is its plain colour times the gain
+        assert torch.allclose(0.28209479 * dc + 0.5, (0.28209479 * plain_dc + 0.5) * gain, atol=1e-5)
+        # a state dict carries the gains into a model that has none yet
+        state = {k: v.clone() if torch.is_tensor(v) else v for k, v in model.state_dict().items()}
+        model.instance_colour_gain = torch.nn.Parameter(torch.zeros(0, 3))
+        model.load_state_dict(state)
+        assert torch.equal(model.instance_colour_gain.detach(), state["instance_colour_gain"])
+        # the instanced file stores them and composes the same colours
+        save_instanced(tmp_path / "gain.npz", instanced_arrays(model, colour_tolerance=0.0))
+        composed = load_instanced(tmp_path / "gain.npz").compose()
+        assert torch.allclose(composed.sh, scene.sh.detach(), atol=2e-3)  # float16 offsets
+    finally:
+        model.config.copy_colour_gain = False
+        model.instance_colour_gain = torch.nn.Parameter(saved)
+        model.step = step

@@ -121,6 +121,10 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Grid cells per template radius of the merge (larger: finer grid, more Gaussians kept)."""
     offset_l1_lambda: float = 0.01
     """Weight of the L1 penalty that keeps per-instance SH offsets small."""
+    copy_colour_gain: bool = False
+    """Fine-tune one gain per colour channel for each replaced copy, applied to its whole colour (not in the paper):
+    a copy's shade or tint, learned where its training views see it, then also holds on the parts of it only
+    other copies' views saw, which the per-Gaussian offsets leave at the template's colour."""
     sky_background: Literal["auto", "on", "off"] = "auto"
     """Learn the sky as a background that depends on the elevation of each ray (``splatreplace_ns.method.sky``)
     instead of splatfacto's random training background. auto: on when the dataset says depth 0 is the sky
@@ -201,6 +205,7 @@ class SplatReplaceModel(SplatfactoModel):
         )
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(torch.zeros(0, 6))  # per instance (ω, δt), see template.compose
+        self.instance_colour_gain = Parameter(torch.zeros(0, 3))  # per instance log gain per channel (copy_colour_gain)
         if self.config.sky_degree < 0:
             raise ValueError(f"sky_degree must be >= 0, got {self.config.sky_degree}")
         # sky background (used only when uses_sky): Legendre coefficients per RGB channel, a grey sky to start
@@ -288,6 +293,8 @@ class SplatReplaceModel(SplatfactoModel):
                 current = self.gauss_params[name]
             elif name == "instance_poses":
                 current = self.instance_pose_delta
+            elif name == "instance_colour":
+                current = self.instance_colour_gain
             else:
                 continue
             for group in optimizer.param_groups:
@@ -344,10 +351,12 @@ class SplatReplaceModel(SplatfactoModel):
             if f"gauss_params.{name}" not in state_dict:
                 state_dict[f"gauss_params.{name}"] = torch.zeros((n,) + tuple(param.shape[1:]), device=self.device)
                 self.gauss_params[name] = Parameter(torch.zeros_like(state_dict[f"gauss_params.{name}"]))
-        if "instance_pose_delta" in state_dict:
-            self.instance_pose_delta = Parameter(torch.zeros_like(state_dict["instance_pose_delta"], device=self.device))
-        else:
+        if "instance_pose_delta" not in state_dict:
             state_dict["instance_pose_delta"] = self.instance_pose_delta.detach().clone()
+        if "instance_colour_gain" not in state_dict:  # checkpoints from before the colour gain: gain 1
+            state_dict["instance_colour_gain"] = torch.zeros(len(state_dict["instance_pose_delta"]), 3)
+        for name in ("instance_pose_delta", "instance_colour_gain"):
+            setattr(self, name, Parameter(torch.zeros_like(state_dict[name], device=self.device)))
         if "sky_coefficients" not in state_dict:  # checkpoints from before the sky background: a grey sky
             state_dict["sky_coefficients"] = torch.zeros_like(self.sky_coefficients)
         self.sky_coefficients = Parameter(torch.zeros_like(state_dict["sky_coefficients"], device=self.device))
@@ -371,6 +380,7 @@ class SplatReplaceModel(SplatfactoModel):
             self.gauss_params["template_class"].detach()[:, 0].round().long(),
             table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
             lam=self.config.template_mix,
+            colour_gain=self.instance_colour_gain if self.config.copy_colour_gain else None,
         )
 
     @torch.no_grad()
@@ -401,6 +411,7 @@ class SplatReplaceModel(SplatfactoModel):
         self.instance_labels = scene.instance_id.cpu()
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(self.instance_pose_delta.new_zeros(0, 6))
+        self.instance_colour_gain = Parameter(self.instance_colour_gain.new_zeros(0, 3))
         self.stage = "replaced"
 
     def _finetune_densify(self, step: int) -> None:
@@ -504,6 +515,7 @@ class SplatReplaceModel(SplatfactoModel):
         if self.config.use_exposure_correction:
             groups["exposure"] = [self.exposure]
         groups["instance_poses"] = [self.instance_pose_delta]
+        groups["instance_colour"] = [self.instance_colour_gain]
         groups["sky"] = [self.sky_coefficients]
         return groups
 

@@ -783,7 +783,8 @@ class SplatReplacePipeline(VanillaPipeline):
             CONSOLE.log("[bold yellow]no registered instance: the scene is not replaced; fine-tuning the segmented scene")
             return
         model.base_gaussians = model.num_points
-        self._swap_parameters(new_params, torch.zeros(len(table.ids), 6, device=model.means.device))
+        self._swap_parameters(new_params, torch.zeros(len(table.ids), 6, device=model.means.device),
+                              torch.zeros(len(table.ids), 3, device=model.means.device))
         model.instance_table = table
         model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)  # per stored Gaussian; see template_class
         model.stage = "finetune"
@@ -913,9 +914,9 @@ class SplatReplacePipeline(VanillaPipeline):
                 CONSOLE.log(f"[bold yellow]{entry['message']}")
         if reverted:
             params = {name: p.detach() for name, p in model.gauss_params.items()}
-            new_params, table, delta = revert_instances(params, model.instance_table, model.instance_pose_delta.detach(),
-                                                        own, reverted)
-            self._swap_parameters(new_params, delta)
+            per_instance = torch.cat((model.instance_pose_delta.detach(), model.instance_colour_gain.detach()), dim=1)
+            new_params, table, rows = revert_instances(params, model.instance_table, per_instance, own, reverted)
+            self._swap_parameters(new_params, rows[:, :6].contiguous(), rows[:, 6:].contiguous())
             model.instance_table = table
             model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
             if model.finetune_strategy is not None:
@@ -956,8 +957,10 @@ class SplatReplacePipeline(VanillaPipeline):
         )
         return strategy, strategy.initialize_state(scene_scale=1.0)
 
-    def _swap_parameters(self, params: Dict[str, torch.Tensor], pose_delta: torch.Tensor) -> None:
-        """Installs new per-Gaussian tensors (any count) and pose parameters, resetting their optimizer state."""
+    def _swap_parameters(self, params: Dict[str, torch.Tensor], pose_delta: torch.Tensor,
+                         colour_gain: torch.Tensor) -> None:
+        """Installs new per-Gaussian tensors (any count) and per-instance pose deltas [I, 6] and colour log gains
+        [I, 3], resetting their optimizer state."""
         model = self.model
         optimizers = getattr(model, "optimizers", None) or {}
         for name, value in params.items():
@@ -967,6 +970,8 @@ class SplatReplacePipeline(VanillaPipeline):
             self._rebind_optimizer(optimizers.get(name), new)
         model.instance_pose_delta = torch.nn.Parameter(pose_delta)
         self._rebind_optimizer(optimizers.get("instance_poses"), model.instance_pose_delta)
+        model.instance_colour_gain = torch.nn.Parameter(colour_gain.to(pose_delta))
+        self._rebind_optimizer(optimizers.get("instance_colour"), model.instance_colour_gain)
 
     @staticmethod
     def _rebind_optimizer(optimizer, param: torch.nn.Parameter) -> None:

@@ -38,6 +38,7 @@ from splatreplace_ns.register.matching import Matcher, make_matcher, rank_view_p
 from splatreplace_ns.register.pnp import relative_transform_from_pnp
 from splatreplace_ns.register.up_axis import floor_up_axis
 from splatreplace_ns.register.virtual_cameras import fit_sphere, framing_distance, sphere_cameras
+from splatreplace_ns.render.sh import SH_C0
 
 METHODS = ("ours", "no_virtual_views", "fpfh")
 
@@ -510,7 +511,6 @@ def polish_chosen(source: InstanceGaussians, template: InstanceGaussians, T: np.
     return polished, _fitness(src_c, tpl_c, polished, cfg.icp_max_distance_rel * radius), note
 
 
-_SH_C0 = 0.28209479177387814
 
 
 def multistart_poses(src: np.ndarray, tgt: np.ndarray, steps: int, up=(0.0, 0.0, 1.0)) -> list[np.ndarray]:
@@ -545,7 +545,7 @@ def _base_rgb(inst: InstanceGaussians) -> np.ndarray:
     """(N, 3) view-independent colour: the RGB itself, or the SH DC term mapped like gsplat (c0·C + 0.5)."""
     c = _np(inst.colors)
     if c.ndim == 3:
-        return np.clip(_SH_C0 * c[:, 0, :] + 0.5, 0.0, 1.0)
+        return np.clip(SH_C0 * c[:, 0, :] + 0.5, 0.0, 1.0)
     return c[:, :3]
 
 

@@ -12,12 +12,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["spherical_harmonics", "sh_to_color", "num_sh_bases", "MAX_SH_DEGREE"]
+__all__ = ["spherical_harmonics", "sh_to_color", "num_sh_bases", "MAX_SH_DEGREE", "SH_C0"]
 
 MAX_SH_DEGREE = 4
 
 # Normalisation constants of the real SH basis (standard values).
 _C0 = 0.28209479177387814
+SH_C0 = _C0
+"""The degree-0 basis constant: ``rgb = SH_C0 · dc + 0.5`` for a Gaussian without higher terms."""
 _C1 = 0.4886025119029199
 _C2 = (
     1.0925484305920792,

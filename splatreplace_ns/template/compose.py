@@ -4,7 +4,8 @@ The scene after registration is stored as one set of Gaussians: background Gauss
 world coordinates and, per class ``c ≥ 1``, template Gaussians in *template space* (the world frame of
 the class's template instance). Every instance ``i`` of class ``c`` is a reference to that template: a
 pose ``P_i`` (template space → world) and per-Gaussian SH offsets in its slot ``s_i``. Its colour is
-``c = λ c_shared + (1 − λ) c_offset`` (λ = 0.8).
+``c = λ c_shared + (1 − λ) c_offset`` (λ = 0.8), optionally times a learned gain per colour channel for the
+whole copy (``model.copy_colour_gain``, not in the paper).
 
 Quaternions are wxyz. Poses are ``q_i = exp(ω_i) ⊗ q0_i``, ``t_i = t0_i + δt_i`` with the learnable
 ``(ω_i, δt_i)`` starting at zero: a stable parametrisation (no normalisation drift, no gimbal lock,
@@ -22,7 +23,7 @@ import torch
 from torch import Tensor
 
 from splatreplace_ns.render.projection import quat_to_rotmat
-from splatreplace_ns.render.sh import num_sh_bases, sh_basis
+from splatreplace_ns.render.sh import SH_C0, num_sh_bases, sh_basis
 
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
@@ -135,6 +136,23 @@ def mix_sh(shared: Tensor, offset: Tensor, lam: float) -> Tensor:
     return lam * shared + (1.0 - lam) * offset
 
 
+def apply_colour_gain(coeffs: Tensor, log_gain: Tensor) -> Tensor:
+    """SH coefficients whose colour is the input's times ``exp(log_gain)`` per channel.
+
+    With the 3DGS convention ``rgb = SH(d) + 0.5`` (``render.sh``), scaling every coefficient by g and adding
+    ``0.5 (g − 1) / C0`` to the DC term gives ``g · rgb`` in every direction (before the clamp at 0).
+
+    Args:
+        coeffs: [M, K, 3] SH coefficients; log_gain: [M, 3] or [3] natural log of the gain per channel.
+    Returns:
+        [M, K, 3].
+    """
+    gain = torch.exp(log_gain)
+    dc_shift = torch.zeros_like(coeffs)
+    dc_shift[:, 0, :] = (0.5 / SH_C0) * (gain - 1.0)
+    return coeffs * gain.unsqueeze(-2) + dc_shift
+
+
 def compose_scene(
     means: Tensor,
     quats: Tensor,
@@ -151,6 +169,7 @@ def compose_scene(
     pose_t: Tensor,
     lam: float = 0.8,
     sh_degree: Optional[int] = None,
+    colour_gain: Optional[Tensor] = None,
 ) -> ComposedScene:
     """Places every instance's copy of its class template into the world.
 
@@ -163,6 +182,8 @@ def compose_scene(
         pose_q [I, 4], pose_R [I, 3, 3], pose_t [I, 3]: template space → world (see :func:`instance_poses`).
         lam: mixing weight λ.
         sh_degree: degree used for the SH rotation (default: from K).
+        colour_gain: [I, 3] natural log of each instance's colour gain per channel (:func:`apply_colour_gain`),
+            or None (no gain).
     Returns:
         :class:`ComposedScene` with M = N_background + Σ_i N_{class(i)} Gaussians.
     """
@@ -196,6 +217,8 @@ def compose_scene(
     quats_inst = quat_multiply(q_rows, quats[inst_rows])
     offsets = sh_offsets[inst_rows, torch.cat(slots)]  # [M_inst, K, 3]
     coeffs = mix_sh(sh[inst_rows], offsets, lam)
+    if colour_gain is not None:  # a gain per channel commutes with the SH rotation below
+        coeffs = apply_colour_gain(coeffs, colour_gain.to(coeffs)[row_instance])
     if K > 1:  # SH rotation: one [K, K] matrix per instance, applied to its block of rows
         rot = sh_rotation(pose_R[kept_t], degree)[..., :K, :K]  # [I', K, K]
         coeffs = torch.cat([torch.einsum("kl,nlc->nkc", rot[k], block) for k, block in enumerate(coeffs.split(counts))])

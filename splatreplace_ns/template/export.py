@@ -5,7 +5,8 @@ bakes the composed scene into plain Gaussians (``SplatReplaceModel.bake_replaced
 viewer shows the replaced scene.
 
 The instanced file (``.npz``) stores what the method actually learned: the background Gaussians, one
-template per class in template space, and per instance its pose and SH offsets. Loading it with
+template per class in template space, and per instance its pose, its SH offsets and, where the run learned
+them (``--pipeline.model.copy-colour-gain``), its colour gain per channel. Loading it with
 :func:`load_instanced` and :meth:`InstancedScene.compose` gives the same Gaussians as the model, up to a
 colour difference the file bounds (below).
 
@@ -107,9 +108,11 @@ class InstancedScene:
             rows = torch.nonzero(gauss_class == cls[i]).squeeze(-1)
             offsets[rows, slot[i]] = self.instance_offsets(int(ids[i]), len(rows), K)
         q, R, t = instance_poses(a["pose_q"].float(), a["pose_t"].float(), torch.zeros(len(ids), 6))
+        gain = a.get("colour_gain")  # absent: the run learned no per-copy colour gain
         return compose_scene(
             a["means"].float(), a["quats"].float(), a["scales"].float(), a["opacities"].float(), a["sh"].float(),
             offsets, gauss_class, cls, slot, ids, q, R, t, lam=float(a["lam"]),
+            colour_gain=None if gain is None else gain.float(),
         )
 
     def instance_offsets(self, instance_id: int, rows: int, num_coeffs: int) -> torch.Tensor:
@@ -145,7 +148,11 @@ def instanced_arrays(model, colour_tolerance: float = DEFAULT_COLOUR_TOLERANCE) 
         "pose_q": q, "pose_t": t, "lam": torch.tensor(model.config.template_mix),
         "class_names": np.array(table.classes),
     }
+    if model.config.copy_colour_gain:
+        out["colour_gain"] = model.instance_colour_gain  # [I, 3] natural log per channel, in the table's order
     epsilon = offset_epsilon(model.config.template_mix, offsets.shape[2], colour_tolerance)
+    if "colour_gain" in out and len(table.ids):  # a gain scales a dropped offset's colour change too
+        epsilon /= max(float(torch.exp(model.instance_colour_gain.detach()).max()), 1.0)
     out["offsets_epsilon"] = np.float32(min(epsilon, np.finfo(np.float32).max))
     for i in range(len(table.ids)):
         rows = gauss_class == table.class_index[i].item()

@@ -183,7 +183,7 @@ def score_replaced_instances(
 def revert_instances(
     params: Mapping[str, Tensor],
     table: InstanceTable,
-    pose_delta: Tensor,
+    per_instance: Tensor,
     own: Mapping[int, Mapping[str, Tensor]],
     ids: Sequence[int],
 ) -> Tuple[Dict[str, Tensor], InstanceTable, Tensor]:
@@ -192,12 +192,13 @@ def revert_instances(
     Args:
         params: stored Gaussians of the replaced scene (N): per-Gaussian tensors with ``template_class`` [N, 1]
             and ``sh_offsets`` [N, S, K, 3] among them.
-        table: the instance table; pose_delta: [I, 6], its rows.
+        table: the instance table; per_instance: [I, D] per-instance parameters in its row order (pose deltas,
+            colour gains).
         own: {instance id: that instance's own stored Gaussians, every key of ``params`` but ``template_class``
             and ``sh_offsets``}.
         ids: instances to revert (each in ``table.ids`` and ``own``).
     Returns:
-        (params [N', ...], table without them, pose_delta [I', 6]). Template Gaussians of a class left without
+        (params [N', ...], table without them, per_instance [I', D]). Template Gaussians of a class left without
         instances are dropped (nothing places them any more); the reverted Gaussians join the background.
     """
     ids = sorted({int(i) for i in ids})
@@ -220,4 +221,4 @@ def revert_instances(
         template_ids={c: t for c, t in table.template_ids.items() if c in still_used},
         kept_in_background=sorted(set(table.kept_in_background) | set(ids)),
     )
-    return out, kept_table, pose_delta[keep_row.to(pose_delta.device)]
+    return out, kept_table, per_instance[keep_row.to(per_instance.device)]
