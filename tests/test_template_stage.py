@@ -181,6 +181,7 @@ def test_rendered_instance_ids_follow_the_replaced_instances(replaced):
 
 
 def test_a_copy_colour_gain_is_rendered_stored_and_exported(replaced, tmp_path):
+    from splatreplace_ns.render.sh import SH_C0
     from splatreplace_ns.template.export import instanced_arrays, load_instanced, save_instanced
 
     _, _, trainer = replaced
@@ -199,7 +200,7 @@ def test_a_copy_colour_gain_is_rendered_stored_and_exported(replaced, tmp_path):
         model.config.copy_colour_gain = True
         gain = torch.exp(model.instance_colour_gain.detach()[row])
         # the DC colour (C0 · dc + 0.5) of instance 1's copy is its plain colour times the gain
-        assert torch.allclose(0.28209479 * dc + 0.5, (0.28209479 * plain_dc + 0.5) * gain, atol=1e-5)
+        assert torch.allclose(SH_C0 * dc + 0.5, (SH_C0 * plain_dc + 0.5) * gain, atol=1e-5)
         # a state dict carries the gains into a model that has none yet
         state = {k: v.clone() if torch.is_tensor(v) else v for k, v in model.state_dict().items()}
         model.instance_colour_gain = torch.nn.Parameter(torch.zeros(0, 3))
