@@ -23,10 +23,10 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import tyro
 
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.tools.bench.output import write_result_json
 
 WRONG_POSE_DEG = 5.0
-"""As the suite counts a wrong pose (``splatreplace_ns.bench.suite.WRONG_POSE_DEG``)."""
+"""As the suite counts a wrong pose (``splatreplace_ns.tools.bench.suite.WRONG_POSE_DEG``)."""
 
 VARIANTS: Dict[str, Dict[str, str]] = {
     "defaults": {},
@@ -73,7 +73,7 @@ def classify(rows: Sequence[Mapping]) -> Dict[str, int]:
 
 def _scene_runs(seed: int, res: str):
     """(data folder, checkpoint folder) of the defaults' suite run of dev seed ``seed``."""
-    from splatreplace_ns.bench.suite import BenchSuiteConfig, run_folder, scene_name
+    from splatreplace_ns.tools.bench.suite import BenchSuiteConfig, run_folder, scene_name
 
     cfg = BenchSuiteConfig(split="dev", seeds=(seed,), res=res)
     data = cfg.data_root / scene_name(seed, res, cfg.n_train, cfg.n_test)
@@ -92,7 +92,7 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
 
     from splatreplace_ns.eval.report import registration_report
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
-    from splatreplace_ns.register.pipeline import with_floor_up_axis
+    from splatreplace_ns.poses.register import with_floor_up_axis
 
     data, checkpoints, step, cfg = _scene_runs(seed, res)
     last = sorted(checkpoints.glob("step-*.ckpt"))[-1]

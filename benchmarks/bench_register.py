@@ -1,8 +1,8 @@
-"""Script form of `splatreplace bench register` (the benchmark lives in splatreplace_ns/bench/register.py)."""
+"""Script form of `splatreplace bench register` (the benchmark lives in splatreplace_ns/tools/bench/register.py)."""
 
 import tyro
 
-from splatreplace_ns.bench.register import BenchRegisterConfig
+from splatreplace_ns.tools.bench.register import BenchRegisterConfig
 
 if __name__ == "__main__":
     tyro.cli(BenchRegisterConfig).main()

@@ -1,8 +1,8 @@
-"""Script form of `splatreplace bench render` (the benchmark lives in splatreplace_ns/bench/render.py)."""
+"""Script form of `splatreplace bench render` (the benchmark lives in splatreplace_ns/tools/bench/render.py)."""
 
 import tyro
 
-from splatreplace_ns.bench.render import BenchRenderConfig
+from splatreplace_ns.tools.bench.render import BenchRenderConfig
 
 if __name__ == "__main__":
     tyro.cli(BenchRenderConfig).main()

@@ -27,11 +27,11 @@ from typing import Dict, List, Optional, Tuple
 
 import tyro
 
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.tools.bench.output import write_result_json
 
 RUNS = ("defaults", "gt_poses", "gt_instances")
 WRONG_POSE_DEG = 5.0
-"""As the suite counts a wrong pose (``splatreplace_ns.bench.suite.WRONG_POSE_DEG``)."""
+"""As the suite counts a wrong pose (``splatreplace_ns.tools.bench.suite.WRONG_POSE_DEG``)."""
 
 
 @dataclass

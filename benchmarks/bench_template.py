@@ -2,7 +2,7 @@
 
 import tyro
 
-from splatreplace_ns.bench.template import BenchTemplateConfig
+from splatreplace_ns.tools.bench.template import BenchTemplateConfig
 
 if __name__ == "__main__":
     tyro.cli(BenchTemplateConfig).main()

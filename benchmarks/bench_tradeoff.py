@@ -2,7 +2,7 @@
 
 import tyro
 
-from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig
+from splatreplace_ns.tools.bench.tradeoff import BenchTradeoffConfig
 
 if __name__ == "__main__":
     tyro.cli(BenchTradeoffConfig).main()

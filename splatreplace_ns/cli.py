@@ -14,20 +14,20 @@ warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated", c
 import tyro
 from typing_extensions import Annotated
 
-from splatreplace_ns.bench.capture import BenchCaptureConfig
-from splatreplace_ns.bench.mask_passes import BenchMaskPassesConfig
-from splatreplace_ns.bench.masks import BenchMasksConfig
-from splatreplace_ns.bench.register import BenchRegisterConfig
-from splatreplace_ns.bench.render import BenchRenderConfig
-from splatreplace_ns.bench.segment import BenchSegmentConfig
-from splatreplace_ns.bench.template import BenchTemplateConfig
-from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig
-from splatreplace_ns.bench.sim import BenchSimConfig
-from splatreplace_ns.bench.suite import BenchSuiteConfig
-from splatreplace_ns.demo import DemoCommand
+from splatreplace_ns.tools.bench.capture import BenchCaptureConfig
+from splatreplace_ns.tools.bench.mask_passes import BenchMaskPassesConfig
+from splatreplace_ns.tools.bench.masks import BenchMasksConfig
+from splatreplace_ns.tools.bench.register import BenchRegisterConfig
+from splatreplace_ns.tools.bench.render import BenchRenderConfig
+from splatreplace_ns.tools.bench.segment import BenchSegmentConfig
+from splatreplace_ns.tools.bench.template import BenchTemplateConfig
+from splatreplace_ns.tools.bench.tradeoff import BenchTradeoffConfig
+from splatreplace_ns.tools.bench.sim import BenchSimConfig
+from splatreplace_ns.tools.bench.suite import BenchSuiteConfig
+from splatreplace_ns.tools.demo import DemoCommand
 from splatreplace_ns.export import ExportCommand
-from splatreplace_ns.masks.command import MasksCommand
-from splatreplace_ns.sim import SimCommand
+from splatreplace_ns.method.masks_command import MasksCommand
+from splatreplace_ns.tools.sim import SimCommand
 from splatreplace_ns.user_errors import user_error_types
 
 BenchCommands = Union[

@@ -9,9 +9,9 @@ import sys
 def user_error_types() -> tuple:
     """The exception classes whose message is the whole story."""
     from splatreplace_ns.datamanager.errors import DatasetFormatError
-    from splatreplace_ns.masks.lifting import ClickError
-    from splatreplace_ns.masks.onnx_sam import OnnxModelError
-    from splatreplace_ns.segment.instances import SelectionError
+    from splatreplace_ns.instances.projection import ClickError
+    from splatreplace_ns.instances.onnx_sam import OnnxModelError
+    from splatreplace_ns.instances.from_clicks import SelectionError
 
     return (ClickError, DatasetFormatError, OnnxModelError, SelectionError, FileNotFoundError)
 

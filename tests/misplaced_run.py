@@ -7,10 +7,10 @@ from typing import Callable, Dict
 
 import numpy as np
 
-from splatreplace_ns.bench import oracle
+from splatreplace_ns.tools.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.train import make_trainer_config
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim import make_scene
 from scenes import train_patched
 
 

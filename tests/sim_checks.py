@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from splatreplace_ns.sim import load_scene_meshes
+from splatreplace_ns.tools.sim import load_scene_meshes
 
 
 def read_image(path: Path) -> np.ndarray:

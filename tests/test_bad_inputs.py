@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from splatreplace_ns.datamanager.errors import DatasetFormatError
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim import make_scene
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +47,7 @@ def _mask(shape) -> Callable[[Path], None]:
 def _colmap(empty: bool) -> Callable[[Path], None]:
     """The capture as a COLMAP model without transforms.json: with no registered image, or with one image gone."""
     def mutate(data: Path) -> None:
-        from splatreplace_ns.sim.colmap_export import export_colmap
+        from splatreplace_ns.tools.sim.colmap_export import export_colmap
 
         source = data.with_name(data.name + "_source")
         shutil.copytree(data, source)
@@ -110,7 +110,7 @@ def test_ns_train_names_the_problem_before_training(scene, tmp_path, case, mutat
 
 @pytest.mark.parametrize("case, mutate, message", CASES, ids=[c[0] for c in CASES])
 def test_splatreplace_masks_names_the_problem_before_training(scene, tmp_path, case, mutate, message):
-    from splatreplace_ns.masks.command import MasksCommand, make_masks
+    from splatreplace_ns.method.masks_command import MasksCommand, make_masks
 
     data = _broken(scene, tmp_path, mutate)
     before = _tree(data)

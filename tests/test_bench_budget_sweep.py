@@ -7,9 +7,9 @@ import json
 import cv2
 import pytest
 
-from splatreplace_ns.bench import budget_sweep, suite
-from splatreplace_ns.bench.output import spread
-from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig
+from splatreplace_ns.tools.bench import budget_sweep, suite
+from splatreplace_ns.tools.bench.output import spread
+from splatreplace_ns.tools.bench.tradeoff import BenchTradeoffConfig
 
 
 def test_scaled_budget_scales_every_stage_and_keeps_each_at_least_one():

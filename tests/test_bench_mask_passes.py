@@ -6,10 +6,10 @@ import dataclasses
 
 import pytest
 
-from splatreplace_ns.bench.mask_passes import (
+from splatreplace_ns.tools.bench.mask_passes import (
     PASSES, BenchMaskPassesConfig, summarise_passes, variant_settings,
 )
-from splatreplace_ns.masks.clustering import ClusteringConfig
+from splatreplace_ns.instances.geometric import ClusteringConfig
 
 
 def test_every_variant_changes_real_settings_away_from_the_defaults(monkeypatch):
@@ -55,7 +55,7 @@ def test_a_rule_pays_only_when_the_mean_drops_by_the_margin_without_it(monkeypat
 
 
 def test_the_report_split_is_refused(tmp_path):
-    from splatreplace_ns.bench.mask_passes import run_mask_passes
+    from splatreplace_ns.tools.bench.mask_passes import run_mask_passes
 
     with pytest.raises(ValueError, match="not in the dev split"):
         run_mask_passes(BenchMaskPassesConfig(seeds=(0, 10000), out_dir=tmp_path))

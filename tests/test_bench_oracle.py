@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from splatreplace_ns.bench.oracle import ground_truth_registration, ground_truth_transform
+from splatreplace_ns.tools.bench.oracle import ground_truth_registration, ground_truth_transform
 
 
 def _similarity(rotvec, t, scale):

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from splatreplace_ns.bench.output import write_result_json
+from splatreplace_ns.tools.bench.output import write_result_json
 
 
 def test_strict_json_with_folders_made(tmp_path, capsys):

@@ -7,10 +7,10 @@ from dataclasses import fields
 
 import pytest
 
-from splatreplace_ns.bench.overrides import apply_overrides, parse_like
+from splatreplace_ns.tools.bench.overrides import apply_overrides, parse_like
 from splatreplace_ns.method.config import splat_replace_trainer_config
-from splatreplace_ns.register.pipeline import RegistrationConfig
-from splatreplace_ns.register.variants import PAPER_REGISTRATION, REGISTRATION_VARIANTS, registration_variant
+from splatreplace_ns.poses.register import RegistrationConfig
+from splatreplace_ns.poses.variants import PAPER_REGISTRATION, REGISTRATION_VARIANTS, registration_variant
 
 
 def test_overrides_set_typed_values_deep_in_the_config():
@@ -70,7 +70,7 @@ def test_each_variant_changes_only_what_it_names():
 
 
 def test_bench_register_rows_are_the_variants():
-    from splatreplace_ns.bench.register import BenchRegisterConfig, row_configs
+    from splatreplace_ns.tools.bench.register import BenchRegisterConfig, row_configs
 
     cfg = BenchRegisterConfig()
     rows = dict(row_configs(cfg, ("ours", "paper", "no_virtual_views")))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.bench.register import (
+from splatreplace_ns.tools.bench.register import (
     BenchRegisterConfig,
     load_bench_scene,
     match_segments_to_ground_truth,
@@ -17,8 +17,8 @@ from splatreplace_ns.bench.register import (
     rigid_part,
     scale_intrinsics,
 )
-from splatreplace_ns.register.virtual_cameras import look_at
-from splatreplace_ns.segment.gt_labels import labels_from_masks
+from splatreplace_ns.poses.virtual_cameras import look_at
+from splatreplace_ns.instances.gt_labels import labels_from_masks
 
 torch.set_num_threads(1)
 
@@ -160,7 +160,7 @@ def tiny_bench(tmp_path_factory):
 
 
 def test_ground_truth_labels_on_trained_tiny(tiny_bench):
-    from splatreplace_ns.sim import class_mesh
+    from splatreplace_ns.tools.sim import class_mesh
 
     _, scene = tiny_bench
     means = scene.pipeline.model.means.detach().double().numpy()
@@ -229,8 +229,8 @@ def test_truth_start_row_pairwise_matrices_and_nearest_turns(tiny_bench, tmp_pat
     """icp_from_truth starts at the ground truth (without ICP its errors are zero); --pairwise registers every
     ordered pair of the three crates, and its entry for (source, the row's template) is the ours row's own
     result; the nearest copy's turn is the smallest turn to another copy of the class."""
-    from splatreplace_ns.bench.register import run_register_bench
-    from splatreplace_ns.register.errors import geodesic_deg
+    from splatreplace_ns.tools.bench.register import run_register_bench
+    from splatreplace_ns.poses.errors import geodesic_deg
 
     cfg, scene = tiny_bench
     cfg = replace(cfg, rows=("ours", "icp_from_truth"), pairwise=True, json=tmp_path / "diag.json")
@@ -268,7 +268,7 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
 
     import yaml
 
-    from splatreplace_ns.bench.register import run_register_bench
+    from splatreplace_ns.tools.bench.register import run_register_bench
 
     cfg, scene = tiny_bench
     rename = {1: 3, 2: 1, 3: 2}  # ground-truth id → segment id
@@ -318,7 +318,7 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
 
 def test_overhead_light_gets_its_own_scene(tmp_path):
     """--light overhead registers on the same scene lit from the zenith, cached (and so trained) apart."""
-    from splatreplace_ns.bench.register import _scene
+    from splatreplace_ns.tools.bench.register import _scene
 
     cfg = BenchRegisterConfig(preset="tiny", res="32x24", n_train=2, n_test=1, data_root=tmp_path)
     lit = {light: _scene(replace(cfg, light=light)) for light in ("preset", "overhead")}
@@ -328,7 +328,7 @@ def test_overhead_light_gets_its_own_scene(tmp_path):
 
 
 def test_row_settings_differ_only_where_the_row_says():
-    from splatreplace_ns.bench.register import BenchRegisterConfig, row_configs
+    from splatreplace_ns.tools.bench.register import BenchRegisterConfig, row_configs
 
     rows = dict(row_configs(BenchRegisterConfig(), ("ours", "no_upright", "no_multistart", "no_icp", "fpfh")))
     ours = rows["ours"]
@@ -345,7 +345,7 @@ def test_row_settings_differ_only_where_the_row_says():
 
 
 def test_load_pipeline_names_the_missing_checkpoint_step(tmp_path):
-    from splatreplace_ns.bench.register import load_pipeline
+    from splatreplace_ns.tools.bench.register import load_pipeline
 
     models = tmp_path / "nerfstudio_models"
     models.mkdir()

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import torch
 
-from splatreplace_ns.bench.segment import BenchSegmentConfig, count_leftovers, leftovers_by_instance, run_segment_bench
-from splatreplace_ns.sim import class_mesh
+from splatreplace_ns.tools.bench.segment import BenchSegmentConfig, count_leftovers, leftovers_by_instance, run_segment_bench
+from splatreplace_ns.tools.sim import class_mesh
 
 
 def test_leftovers_are_background_gaussians_inside_or_next_to_an_instance():

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from splatreplace_ns.bench import suite
-from splatreplace_ns.bench.suite import (
+from splatreplace_ns.tools.bench import suite
+from splatreplace_ns.tools.bench.suite import (
     DEV_SEEDS,
     REPORT_SEEDS,
     BenchSuiteConfig,

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from splatreplace_ns.bench.template import run_ablation
+from splatreplace_ns.tools.bench.template import run_ablation
 from splatreplace_ns.method.train import make_trainer_config, run_training
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim import make_scene
 
 B, C, F = 150, 100, 40
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from splatreplace_ns.bench.template import gain_by_baseline_quality
+from splatreplace_ns.tools.bench.template import gain_by_baseline_quality
 
 
 def rows(values):
@@ -35,7 +35,7 @@ def test_views_without_the_metric_are_left_out_and_too_few_give_none():
 def test_each_configuration_gets_its_own_run_folder():
     from dataclasses import replace
 
-    from splatreplace_ns.bench.template import BenchTemplateConfig, run_folder_name
+    from splatreplace_ns.tools.bench.template import BenchTemplateConfig, run_folder_name
 
     demo = BenchTemplateConfig(preset="office", res="128x96", n_train=48, n_test=8, base_iterations=1500,
                                contrastive_iterations=500, finetune_iterations=1000)

@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from splatreplace_ns.bench.tradeoff import BenchTradeoffConfig, gain_per_minute, pareto_front, stage_times, write_pareto_plot
+from splatreplace_ns.tools.bench.tradeoff import BenchTradeoffConfig, gain_per_minute, pareto_front, stage_times, write_pareto_plot
 
 B, C, F = 300, 100, 60
 

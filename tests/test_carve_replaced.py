@@ -6,12 +6,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from splatreplace_ns.bench import oracle
+from splatreplace_ns.tools.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config
-from splatreplace_ns.segment.carving import carved_instance
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.instances.carve import carved_instance
+from splatreplace_ns.tools.sim import make_scene
 from scenes import train_patched
 
 

@@ -166,7 +166,7 @@ def test_a_mask_of_the_image_at_another_scale_is_resized_to_it(tmp_path):
 
 
 def test_resized_pixel_keeps_the_point_of_the_picture():
-    from splatreplace_ns.segment.clicks import resized_pixel
+    from splatreplace_ns.datamanager.clicks import resized_pixel
 
     # pixels 0 and 1 of the full-size image are the two halves of pixel 0 at half size
     assert resized_pixel((0, 1), 0.5) == (-0.25, 0.25)
@@ -313,7 +313,7 @@ def test_frame_cameras_are_the_cameras_nerfstudio_trains_with(tmp_path, how):
     also when the poses were saved through an ``applied_transform`` (``ns-process-data`` writes one) or the
     folder holds ``colmap/sparse/0`` (nerfstudio then assumes its older COLMAP convention); the ground-truth
     object poses follow the same transform."""
-    from splatreplace_ns.masks.base import frame_cameras
+    from splatreplace_ns.method.masks_base import frame_cameras
 
     meta = write_dataset(tmp_path)
     if how != "none":

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from splatreplace_ns.demo import instance_table
+from splatreplace_ns.tools.demo import instance_table
 
 
 def test_rows_worst_seen_first_and_background_last():

@@ -275,7 +275,7 @@ def segmented_run(tmp_path_factory):
     """The tiny sim scene through the base and contrastive stages and the click segmentation (short budget,
     as in test_segmentation_stage; no carving, which does not matter here)."""
     from splatreplace_ns.method.train import make_trainer_config, run_training
-    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.tools.sim import make_scene
 
     data = tmp_path_factory.mktemp("tiny") / "tiny"
     make_scene("tiny", data, n_train=12)

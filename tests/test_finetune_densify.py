@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import torch
 
-from splatreplace_ns.bench import oracle
+from splatreplace_ns.tools.bench import oracle
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.model import SplatReplaceModel
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim import make_scene
 from scenes import train_patched
 
 FINETUNE = 120  # refinements at fine-tuning steps 24, 36 and 48, the check after fine-tuning at 60

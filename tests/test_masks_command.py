@@ -12,12 +12,12 @@ import pytest
 import torch
 
 from splatreplace_ns.datamanager.click_masks import read_dataset_meta
-from splatreplace_ns.masks.capture import strip_ground_truth
-from splatreplace_ns.masks.command import MasksCommand, make_masks
+from splatreplace_ns.tools.sim.capture import strip_ground_truth
+from splatreplace_ns.method.masks_command import MasksCommand, make_masks
 from splatreplace_ns.datamanager.errors import DatasetFormatError
-from splatreplace_ns.masks.lifting import ClickError
-from splatreplace_ns.masks.onnx_sam import OnnxModelError
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.instances.projection import ClickError
+from splatreplace_ns.instances.onnx_sam import OnnxModelError
+from splatreplace_ns.tools.sim import make_scene
 from scenes import (
     click_in_viewer, fire_viewer_click, free_port, lock_is_free, press_viewer_button, train_with_viewer, viewer_psnr,
     wait_until,
@@ -69,7 +69,7 @@ def test_masks_for_every_frame_match_the_ground_truth(base_run):
 def test_a_capture_without_a_split_trains_the_masks_base_on_every_frame(base_run, tmp_path):
     """The tiny scene lists its split (12 training views of 16); without the lists, as ns-process-data writes a
     capture, the base stage of ``splatreplace masks`` trains on all 16 frames, not nerfstudio's nine in ten."""
-    from splatreplace_ns.masks.base import load_base
+    from splatreplace_ns.method.masks_base import load_base
 
     scene, capture, _ = base_run
     data = tmp_path / "capture"
@@ -88,7 +88,7 @@ def test_the_masks_ceiling_renders_each_gaussian_with_its_ground_truth_label(bas
     """The benchmark's ceiling: Gaussians labelled by the ground-truth masks and rendered as the geometric
     backend renders its instances, scored on the same frames. Our masks do not beat it, and the written masks
     given back to the scoring score as ``score_masks`` scores them."""
-    from splatreplace_ns.bench.masks import oracle_masks, score_arrays, score_masks
+    from splatreplace_ns.tools.bench.masks import oracle_masks, score_arrays, score_masks
 
     scene, capture, report = base_run
     masks, file_paths = oracle_masks(Path(report["config"]), capture, scene)
@@ -210,7 +210,7 @@ def test_colmap_capture_end_to_end(base_run, tmp_path):
     `splatreplace masks` writes its transforms.json and masks, then a short `ns-train splat-replace` trains on
     it (base stage initialised from the COLMAP points) and segments the clicked instances."""
     from splatreplace_ns.method.train import make_trainer_config, run_training
-    from splatreplace_ns.sim.colmap_export import export_colmap
+    from splatreplace_ns.tools.sim.colmap_export import export_colmap
 
     scene, capture, report = base_run
     data = tmp_path / "colmap_capture"
@@ -241,9 +241,9 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
     import torch
     import viser
 
-    from splatreplace_ns.masks.base import frame_cameras, load_base
-    from splatreplace_ns.masks.command import mask_click_controls
-    from splatreplace_ns.masks.viewer_clicks import write_clicks_json
+    from splatreplace_ns.method.masks_base import frame_cameras, load_base
+    from splatreplace_ns.method.masks_command import mask_click_controls
+    from splatreplace_ns.method.masks_viewer import write_clicks_json
 
     scene, capture, report = base_run
     data = tmp_path / "viewer_capture"
@@ -303,7 +303,7 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
 
 
 def test_viewer_controls_refuse_to_confirm_nothing():
-    from splatreplace_ns.masks.viewer_clicks import MaskClickControls
+    from splatreplace_ns.method.masks_viewer import MaskClickControls
 
     controls = MaskClickControls(lambda *a: None, lambda clicks: None)
     controls.confirm()
@@ -321,7 +321,7 @@ def test_masks_command_with_the_viewer(base_run, tmp_path, monkeypatch):
     import torch
 
     from nerfstudio.viewer.viewer_elements import ViewerClick
-    from splatreplace_ns.masks import command
+    from splatreplace_ns.method import masks_command as command
 
     scene, capture, report = base_run
     data = tmp_path / "viewer_run"
@@ -371,7 +371,7 @@ def test_ns_train_makes_the_masks_of_a_colmap_capture(tmp_path):
     transforms.json, makes the masks from the base model and the same clicks after the base stage, writes them
     like `splatreplace masks` (backup kept), and the contrastive stage trains on them."""
     from splatreplace_ns.method.train import make_trainer_config, run_training
-    from splatreplace_ns.sim.colmap_export import export_colmap
+    from splatreplace_ns.tools.sim.colmap_export import export_colmap
 
     scene, capture = tmp_path / "scene", tmp_path / "capture"
     make_scene("tiny", scene, n_train=12)
@@ -540,7 +540,7 @@ def test_masks_made_from_other_clicks_are_made_again(base_run, tmp_path):
     """Masks written from clicks record which clicks made them; when clicks.json changes afterwards (a missed
     instance added), ns-train makes them again after the base stage instead of training on the old instances."""
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
-    from splatreplace_ns.segment.clicks import clicks_digest, load_clicks
+    from splatreplace_ns.datamanager.clicks import clicks_digest, load_clicks
 
     scene, capture, report = base_run
     data = tmp_path / "capture"
@@ -554,7 +554,7 @@ def test_masks_made_from_other_clicks_are_made_again(base_run, tmp_path):
 
 
 def test_interior_pixel_is_the_centre_of_the_largest_inscribed_disc():
-    from splatreplace_ns.segment.clicks import interior_pixel
+    from splatreplace_ns.datamanager.clicks import interior_pixel
 
     region = np.zeros((48, 64), bool)
     assert interior_pixel(region) is None
@@ -606,6 +606,6 @@ def test_a_click_outside_the_mask_it_made_takes_its_query_inside_it(base_run, tm
 
 
 def load_clicks_of(data: Path):
-    from splatreplace_ns.segment.clicks import load_clicks
+    from splatreplace_ns.datamanager.clicks import load_clicks
 
     return load_clicks(data / "clicks.json")

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.masks.onnx_sam import DECODER_INPUTS, OnnxModelError, OnnxSam, sam_labels
+from splatreplace_ns.instances.onnx_sam import DECODER_INPUTS, OnnxModelError, OnnxSam, sam_labels
 
 SIZE = 64
 STRIDE = 4

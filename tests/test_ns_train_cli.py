@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim import make_scene
 
 
 def test_sim_scene_loads_through_our_datamanager(tmp_path):

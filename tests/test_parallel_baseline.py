@@ -10,8 +10,8 @@ import sys
 import pytest
 import torch
 
-from splatreplace_ns.bench.template import _wait_for, test_metrics as scored, train_ours_and_baseline
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.bench.template import _wait_for, test_metrics as scored, train_ours_and_baseline
+from splatreplace_ns.tools.sim import make_scene
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2 or torch.cuda.is_available(), reason="needs a CPU with two cores")

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.bench.capture import (
+from splatreplace_ns.tools.bench.capture import (
     capture_clicks, ns_process_data, posed_centres, processed_names, training_photos,
 )
 from splatreplace_ns.eval.alignment import apply_similarity, centre_errors, invert_similarity, similarity_fit
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 RES, N_TRAIN, N_TEST = "256x192", 24, 4  # SIFT needs this size to pose the crates from every photo
@@ -101,7 +101,7 @@ def test_stages_render_from_the_cameras_nerfstudio_trains_with(capture, tmp_path
     (``sparse/0``, read through pycolmap), the cameras the masks and clicks steps render from equal the
     datamanager's training cameras, and they see the scene as the true cameras do."""
     from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
-    from splatreplace_ns.masks.base import frame_cameras
+    from splatreplace_ns.method.masks_base import frame_cameras
 
     data = capture["data"]
     if layout == "colmap_sparse0":

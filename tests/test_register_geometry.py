@@ -1,4 +1,4 @@
-"""Registration geometry (splatreplace_ns.register) against ground truth."""
+"""Registration geometry (splatreplace_ns.poses) against ground truth."""
 
 import math
 import time
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.register import (
+from splatreplace_ns.poses import (
     backproject,
     camera_pose_to_relative,
     fit_sphere,
@@ -23,9 +23,9 @@ from splatreplace_ns.register import (
     sphere_cameras,
     translation_error_rel,
 )
-from splatreplace_ns.register.virtual_cameras import look_at
+from splatreplace_ns.poses.virtual_cameras import look_at
 from scenes import sample_mesh
-from splatreplace_ns.sim import CLASS_SYMMETRY, class_mesh
+from splatreplace_ns.tools.sim import CLASS_SYMMETRY, class_mesh
 
 torch.set_num_threads(1)
 
@@ -129,7 +129,7 @@ def test_pnp_with_outliers():
     uv[out] = rng.uniform([0, 0], [W, H], size=(out.sum(), 2))
     res = solve_pnp(pts, uv, K, W, H)
     assert res.success, res.reason
-    from splatreplace_ns.register.errors import geodesic_deg
+    from splatreplace_ns.poses.errors import geodesic_deg
 
     assert geodesic_deg(res.world_to_camera[:3, :3], vm[:3, :3]) < 0.1
     assert np.abs(res.world_to_camera[:3, 3] - vm[:3, 3]).max() < 1e-3
@@ -336,7 +336,7 @@ TILTED_UP = np.array([0.02, -0.13, 0.99]) / np.linalg.norm([0.02, -0.13, 0.99])
 
 
 def test_upright_icp_recovers_a_turn_about_a_tilted_up_axis():
-    from splatreplace_ns.register.icp import refine_icp_upright
+    from splatreplace_ns.poses.icp import refine_icp_upright
 
     mesh = class_mesh("chair")
     target = sample_mesh(mesh, 4000, seed=4)[0]
@@ -355,7 +355,7 @@ def test_upright_icp_recovers_a_turn_about_a_tilted_up_axis():
 
 
 def test_upright_icp_hard_cases_stay_finite():
-    from splatreplace_ns.register.icp import nearest_upright, refine_icp_upright
+    from splatreplace_ns.poses.icp import nearest_upright, refine_icp_upright
 
     mesh = class_mesh("pawn")  # symmetric about up: the turn is free, the fit must still converge
     target = sample_mesh(mesh, 2000, seed=6)[0]
@@ -389,7 +389,7 @@ def _plane_points(normal, n, extent, rng, offset=0.0):
 
 
 def test_floor_up_axis_finds_the_floor_not_the_wall():
-    from splatreplace_ns.register.up_axis import floor_up_axis
+    from splatreplace_ns.poses.up_axis import floor_up_axis
 
     rng = np.random.default_rng(0)
     floor = _plane_points(TILTED_UP, 3000, 2.0, rng)
@@ -409,8 +409,8 @@ def test_floor_up_axis_finds_the_floor_not_the_wall():
 
 
 def test_floor_up_axis_falls_back_to_the_prior():
-    from splatreplace_ns.register.pipeline import RegistrationConfig, with_floor_up_axis
-    from splatreplace_ns.register.up_axis import floor_up_axis
+    from splatreplace_ns.poses.register import RegistrationConfig, with_floor_up_axis
+    from splatreplace_ns.poses.up_axis import floor_up_axis
 
     rng = np.random.default_rng(1)
     ball = rng.normal(0.0, 1.0, (3000, 3))  # no plane at all

@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from splatreplace_ns.register import make_matcher, rank_view_pairs
-from splatreplace_ns.register.pipeline import RegistrationConfig, get_matcher
+from splatreplace_ns.poses import make_matcher, rank_view_pairs
+from splatreplace_ns.poses.register import RegistrationConfig, get_matcher
 from test_register_geometry import _texture
 from test_register_pipeline import FAST, pose_errors, tiny  # noqa: F401  (tiny: the oracle crates scene)
 
@@ -349,7 +349,7 @@ def test_registration_with_new_robust_matchers(tiny, xfeat_onnx, robust):
     the exported XFeat, whose fixed 96 × 128 input is the size of the default renders)."""
     from dataclasses import replace as dc_replace
 
-    from splatreplace_ns.register.pipeline import register_instance
+    from splatreplace_ns.poses.register import register_instance
 
     _, path = xfeat_onnx
     onnx_model = str(path) if robust == "onnx" else None

@@ -1,4 +1,4 @@
-"""End-to-end instance registration (splatreplace_ns.register.pipeline) against simulator ground truth.
+"""End-to-end instance registration (splatreplace_ns.poses.register) against simulator ground truth.
 
 Oracle: a "perfect" Gaussian scene built from the ground-truth meshes of the ``tiny`` preset (three crates):
 surface samples coloured with the class texture in object-local coordinates, so the copies differ only by
@@ -14,8 +14,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from splatreplace_ns.register import rotation_error_deg, translation_error_rel
-from splatreplace_ns.register.pipeline import (
+from splatreplace_ns.poses import rotation_error_deg, translation_error_rel
+from splatreplace_ns.poses.register import (
     InstanceGaussians,
     RegistrationConfig,
     choose_templates,
@@ -24,8 +24,8 @@ from splatreplace_ns.register.pipeline import (
     render_instance_views,
 )
 from scenes import sample_mesh
-from splatreplace_ns.sim import class_mesh, load_scene_meshes, make_scene
-from splatreplace_ns.sim.textures import albedo
+from splatreplace_ns.tools.sim import class_mesh, load_scene_meshes, make_scene
+from splatreplace_ns.tools.sim.textures import albedo
 
 torch.set_num_threads(1)
 
@@ -124,7 +124,7 @@ def test_register_instances_recovers_ground_truth(tiny):
 
 
 def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
-    from splatreplace_ns.register.pipeline import _upright_polish
+    from splatreplace_ns.poses.register import _upright_polish
 
     g = tiny["gaussians"]
     free = register_instance(g[1], g[2], RegistrationConfig(**FAST, upright=False))
@@ -159,7 +159,7 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
 def test_refine_from_a_perturbed_true_pose_comes_back(tiny):
     """refine_from (what the pipeline does to its chosen candidate) brings a pose 4° and a few centimetres off
     the truth back within the registration targets on the oracle crates, upright."""
-    from splatreplace_ns.register.pipeline import refine_from
+    from splatreplace_ns.poses.register import refine_from
 
     g, poses = tiny["gaussians"], tiny["poses"]
     true = poses[2] @ np.linalg.inv(poses[1])  # template ≈ true · source
@@ -211,7 +211,7 @@ def test_fpfh_method_runs(tiny):
 
 
 def test_no_virtual_views_uses_given_cameras(tiny):
-    from splatreplace_ns.register import sphere_cameras
+    from splatreplace_ns.poses import sphere_cameras
 
     cfg = RegistrationConfig(method="no_virtual_views", image_size=(64, 48), top_k=3)
     src, tpl = replace(tiny["gaussians"][3], id=3), replace(tiny["gaussians"][2], id=2)
@@ -278,7 +278,7 @@ def test_faint_off_surface_gaussians_do_not_pull_icp(tiny):
 
 
 def test_multistart_poses_turn_about_up_and_match_centroids():
-    from splatreplace_ns.register.pipeline import multistart_poses
+    from splatreplace_ns.poses.register import multistart_poses
 
     rng = np.random.default_rng(1)
     src, tgt = rng.normal(size=(50, 3)), rng.normal(size=(40, 3)) + 5.0
@@ -313,7 +313,7 @@ def test_choose_candidate_shape_first_then_colour():
     """Order of the candidate choice: acceptable, shape (fitness within the ratio of the best), colour. A wrong
     pose of a partly seen copy that wins on colour but fits clearly worse (fitness 0.535 against 0.680) loses; one
     that fits about as well does not."""
-    from splatreplace_ns.register.pipeline import choose_candidate
+    from splatreplace_ns.poses.register import choose_candidate
 
     cfg = RegistrationConfig()
     ties = [(0, 0, -k) for k in range(3)]

@@ -575,7 +575,7 @@ def test_gsplat_without_its_kernels_falls_back_to_torch_or_says_why(monkeypatch)
 
 
 def test_render_benchmark_leaves_out_gsplat_rows_without_its_kernels(monkeypatch, capsys):
-    from splatreplace_ns.bench.render import _backends
+    from splatreplace_ns.tools.bench.render import _backends
 
     rasterize_module = importlib.import_module("splatreplace_ns.render.rasterize")
     monkeypatch.setattr(rasterize_module, "gsplat_unavailable_reason", lambda: "no CUDA toolkit (nvcc)")

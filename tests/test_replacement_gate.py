@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.register.gate import (
+from splatreplace_ns.poses.gate import (
     ReplacementGateConfig, colour_fitted, gate_registrations, judge, psnr, yaw_rotation,
 )
-from splatreplace_ns.register.virtual_cameras import intrinsics, look_at
+from splatreplace_ns.poses.virtual_cameras import intrinsics, look_at
 from splatreplace_ns.render import rasterize
 
 W, H = 64, 48

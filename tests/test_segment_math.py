@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
-from splatreplace_ns.segment.carving import carve_mask
-from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss, cosine_distance
-from splatreplace_ns.segment.sampling import sample_contrastive_pixels
-from splatreplace_ns.segment.select import masks_from_rendered_features, select_gaussians
+from splatreplace_ns.instances.carve import carve_mask
+from splatreplace_ns.features.contrastive import ContrastiveLossConfig, contrastive_loss, cosine_distance
+from splatreplace_ns.datamanager.sampling import sample_contrastive_pixels
+from splatreplace_ns.instances.select import masks_from_rendered_features, select_gaussians
 
 
 def test_sampling_gives_every_mask_its_share():
@@ -145,7 +145,7 @@ def test_mask_coverage_counts_the_pixels_each_instance_covers_inside_its_own_mas
     alpha[0, :3, 0] = 0.9  # instance 1 covers 3 of its 6 pixels
     alpha[1, 0, 0] = 0.49  # below min_alpha: not covered
     alpha[:, :, 1] = 0.6  # instance 2 is everywhere: only its own 6 pixels count
-    from splatreplace_ns.segment.select import mask_coverage_counts
+    from splatreplace_ns.instances.select import mask_coverage_counts
 
     counts = mask_coverage_counts(masks, alpha, min_alpha=0.5)
     assert counts.tolist() == [[3, 6], [6, 6]]
@@ -154,7 +154,7 @@ def test_mask_coverage_counts_the_pixels_each_instance_covers_inside_its_own_mas
 
 
 def test_undercovered_instances_are_named_with_their_share():
-    from splatreplace_ns.segment.select import undercovered_instances
+    from splatreplace_ns.instances.select import undercovered_instances
 
     instances = [{"id": 1, "class": "chair", "num_gaussians": 6}, {"id": 2, "class": "table", "num_gaussians": 900}]
     messages = undercovered_instances(instances, [0.05, 0.6], min_coverage=0.2)
@@ -165,7 +165,7 @@ def test_undercovered_instances_are_named_with_their_share():
 def test_a_clicks_file_counts_once_it_appears_and_reads(tmp_path):
     import json
 
-    from splatreplace_ns.segment.clicks import clicks_file_appeared
+    from splatreplace_ns.datamanager.clicks import clicks_file_appeared
 
     path = tmp_path / "clicks.json"
     appeared = clicks_file_appeared(path)

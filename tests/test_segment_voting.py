@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from splatreplace_ns.render import rasterize
-from splatreplace_ns.segment.voting import (
+from splatreplace_ns.instances.lift import (
     Votes, background_query, labels_from_votes, snap_query, view_label_weights, vote_labels, voted_features,
 )
 
@@ -131,7 +131,7 @@ def test_mask_of_another_size_is_refused():
 
 
 def test_queries_and_features_select_exactly_the_voted_labels():
-    from splatreplace_ns.segment.instances import InstanceSelection, SelectionError
+    from splatreplace_ns.instances.from_clicks import InstanceSelection, SelectionError
 
     votes = Votes(labels=torch.tensor([2, 0, 2, 1]), weights=torch.ones(4, 3), views=1)
     features = voted_features(votes)
@@ -155,9 +155,9 @@ def test_ns_train_with_the_voting_lift_selects_the_clicked_instances(tmp_path):
     """A whole run with the voting lift: no contrastive stage, the clicks select the voted instances right after
     the base stage, masks and carving follow. The base stage is 20 steps from the scene's points made opaque (the
     vote needs geometry, not a converged model), so the test stays short."""
-    from splatreplace_ns.bench.segment import leftovers_by_instance
+    from splatreplace_ns.tools.bench.segment import leftovers_by_instance
     from splatreplace_ns.method.train import make_trainer_config, run_training
-    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.tools.sim import make_scene
 
     data = tmp_path / "tiny"
     make_scene("tiny", data, n_train=12)
@@ -197,7 +197,7 @@ def test_ns_train_with_the_voting_lift_selects_the_clicked_instances(tmp_path):
 
 
 def test_votes_from_known_labels_put_all_weight_on_each_label():
-    from splatreplace_ns.segment.voting import votes_from_labels
+    from splatreplace_ns.instances.lift import votes_from_labels
 
     votes = votes_from_labels(torch.tensor([0, 2, 1, 2, 7]), 2)  # 7: beyond the largest label, clamped to it
     assert votes.labels.tolist() == [0, 2, 1, 2, 2] and votes.views == 0
@@ -209,10 +209,10 @@ def test_a_capture_without_masks_selects_the_masks_step_instances_without_a_roun
     """Photos and clicks only: the masks step gives every Gaussian its instance id, and with the voting lift the
     clicks' instances are those ids as they are (no vote over the rendered masks, no contrastive stage); the user's
     transforms.json is left byte for byte as it was."""
-    from splatreplace_ns.bench.segment import leftovers_by_instance
-    from splatreplace_ns.masks.capture import strip_ground_truth
+    from splatreplace_ns.tools.bench.segment import leftovers_by_instance
+    from splatreplace_ns.tools.sim.capture import strip_ground_truth
     from splatreplace_ns.method.train import make_trainer_config, run_training
-    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.tools.sim import make_scene
 
     scene = tmp_path / "scene"
     make_scene("tiny", scene, n_train=12)

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from splatreplace_ns.method.train import make_trainer_config, run_training
-from splatreplace_ns.segment.clicks import Click
-from splatreplace_ns.segment.instances import SelectionError
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.datamanager.clicks import Click
+from splatreplace_ns.instances.from_clicks import SelectionError
+from splatreplace_ns.tools.sim import make_scene
 from scenes import (
     click_in_viewer, fire_viewer_click, free_port, lock_is_free, press_viewer_button, train_with_viewer, viewer_psnr, wait_until,
 )

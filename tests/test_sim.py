@@ -13,7 +13,7 @@ import pytest
 
 from sim_checks import check_clicks_inside_instances, mask_iou_against_meshes, read_image
 
-from splatreplace_ns.sim import PRESETS, load_scene_meshes, make_scene
+from splatreplace_ns.tools.sim import PRESETS, load_scene_meshes, make_scene
 
 SMALL = {  # preset → (resolution, n_train, n_test): small enough for unit tests
     "tiny": ((64, 48), 8, 4),
@@ -190,8 +190,8 @@ def test_scene_from_an_older_generator_is_made_again(tmp_path):
     """A cached scene whose transforms.json an older generator wrote (version 1: an open-sky scene without
     ``depth_zero``) is no longer current, and the benchmarks' cache writes it again; a current one is reused
     untouched."""
-    from splatreplace_ns.bench.scenes import cached_scene
-    from splatreplace_ns.sim import is_current_scene
+    from splatreplace_ns.tools.bench.scenes import cached_scene
+    from splatreplace_ns.tools.sim import is_current_scene
 
     data = cached_scene("temple", "48x36", 8, 1, tmp_path)
     assert is_current_scene(data)
@@ -210,7 +210,7 @@ def test_scene_from_an_older_generator_is_made_again(tmp_path):
 def test_click_in_the_middle_of_a_column_not_at_its_capital():
     """A column: a 5 px shaft with 9 px wide plinth and capital, cut by the top edge of the frame. Its deepest
     pixels tie along the plinth and capital; a person clicks the middle of the shaft."""
-    from splatreplace_ns.sim.writer import choose_click_view, click_candidates
+    from splatreplace_ns.tools.sim.writer import choose_click_view, click_candidates
 
     ids = np.zeros((60, 40), np.uint16)
     ids[0:6, 10:19] = 3  # capital at the frame's top edge

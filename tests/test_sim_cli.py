@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import tyro
 
-from splatreplace_ns.sim import PRESETS, SimCommand
-from splatreplace_ns.sim.presets import Effects
+from splatreplace_ns.tools.sim import PRESETS, SimCommand
+from splatreplace_ns.tools.sim.presets import Effects
 
 
 def test_list_describes_presets_and_effects(capsys):

@@ -12,10 +12,10 @@ import pytest
 import tyro
 from sim_checks import check_clicks_inside_instances, mask_iou_against_meshes
 
-from splatreplace_ns.sim import CLASS_SYMMETRY, SimCommand, class_mesh, make_scene
-from splatreplace_ns.sim.presets import Effects
-from splatreplace_ns.sim.random_scenes import LAYOUTS, SUITE_CLASSES, YAWS, class_extent, draw_recipe, random_preset
-from splatreplace_ns.sim.render import Renderer
+from splatreplace_ns.tools.sim import CLASS_SYMMETRY, SimCommand, class_mesh, make_scene
+from splatreplace_ns.tools.sim.presets import Effects
+from splatreplace_ns.tools.sim.random_scenes import LAYOUTS, SUITE_CLASSES, YAWS, class_extent, draw_recipe, random_preset
+from splatreplace_ns.tools.sim.render import Renderer
 
 DEV = range(100)
 

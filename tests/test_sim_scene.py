@@ -11,11 +11,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from splatreplace_ns.sim import CLASS_SYMMETRY, CLASSES, PRESETS, class_mesh
-from splatreplace_ns.sim.cameras import PinholeCamera, intrinsics, look_at, trajectory
-from splatreplace_ns.sim.geometry import class_signed_distance, rotation_z
-from splatreplace_ns.sim.render import Renderer
-from splatreplace_ns.sim.textures import albedo
+from splatreplace_ns.tools.sim import CLASS_SYMMETRY, CLASSES, PRESETS, class_mesh
+from splatreplace_ns.tools.sim.cameras import PinholeCamera, intrinsics, look_at, trajectory
+from splatreplace_ns.tools.sim.geometry import class_signed_distance, rotation_z
+from splatreplace_ns.tools.sim.render import Renderer
+from splatreplace_ns.tools.sim.textures import albedo
 
 
 def _max_distance(a: o3d.geometry.TriangleMesh, b: o3d.geometry.TriangleMesh) -> float:
@@ -229,7 +229,7 @@ def test_a_slanted_sun_lights_turned_copies_differently_and_overhead_alike():
 
 
 def test_overhead_light_changes_the_images_only(tmp_path):
-    from splatreplace_ns.sim import make_scene
+    from splatreplace_ns.tools.sim import make_scene
 
     for light in ("preset", "overhead"):
         make_scene("tiny", tmp_path / light, seed=0, n_train=2, n_test=1, workers=1, light=light)

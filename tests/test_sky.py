@@ -97,7 +97,7 @@ def test_sky_opacity_l1_values_and_gradients():
 @pytest.fixture(scope="module")
 def temple_with_sky(tmp_path_factory):
     """A short base stage on a tiny temple (open sky: its transforms.json says depth 0 is far)."""
-    from splatreplace_ns.bench.scenes import cached_scene
+    from splatreplace_ns.tools.bench.scenes import cached_scene
     from splatreplace_ns.method.train import make_trainer_config, run_training
 
     data = cached_scene("temple", "64x48", 12, 2, tmp_path_factory.mktemp("scenes"))

@@ -14,8 +14,8 @@ from torch._dynamo.utils import counters
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
 from splatreplace_ns.method.train import make_trainer_config, run_training
-from splatreplace_ns.bench import oracle
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.bench import oracle
+from splatreplace_ns.tools.sim import make_scene
 
 FINETUNE = 120
 RUN_STATS = {}
@@ -94,7 +94,7 @@ def test_replaced_scene_renders_and_survives_the_checkpoint(replaced, tmp_path):
     assert np.isfinite(metrics["psnr"]) and metrics["psnr"] > 12
     assert np.isfinite(metrics["psnr_masked"])
     # bench masks scores every run inside the scene's ground-truth masks; here those are the dataset's own
-    from splatreplace_ns.bench.masks import test_view_psnr_in_gt_masks
+    from splatreplace_ns.tools.bench.masks import test_view_psnr_in_gt_masks
 
     assert test_view_psnr_in_gt_masks(pipeline, replaced[0]) == pytest.approx(metrics["psnr_masked"], abs=1e-3)
     pipeline.eval()

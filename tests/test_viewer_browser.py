@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 import pytest
 
-from splatreplace_ns.masks.capture import strip_ground_truth
-from splatreplace_ns.sim import make_scene
+from splatreplace_ns.tools.sim.capture import strip_ground_truth
+from splatreplace_ns.tools.sim import make_scene
 from scenes import free_port
 
 BROWSER_DIR = Path(__file__).parent / "browser"

@@ -18,8 +18,8 @@ from splatreplace_ns.datamanager.click_masks import with_click_masks
 from splatreplace_ns.datamanager.dataparser import SplatReplaceDataParser, SplatReplaceDataParserConfig
 from splatreplace_ns.datamanager.dataset import SplatReplaceDataset
 from splatreplace_ns.datamanager.undistort import captured_to_undistorted_pixel, remap_nearest, undistortion_maps
-from splatreplace_ns.segment.sampling import sample_contrastive_pixels
-from splatreplace_ns.segment.clicks import resized_pixel
+from splatreplace_ns.datamanager.sampling import sample_contrastive_pixels
+from splatreplace_ns.datamanager.clicks import resized_pixel
 
 
 @dataclass
@@ -225,7 +225,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         Returns:
             {instance id: ``register.RegistrationResult``}.
         """
-        from splatreplace_ns.register.pipeline import register_instances
+        from splatreplace_ns.poses.register import register_instances
 
         cameras = None
         if config.method == "no_virtual_views":

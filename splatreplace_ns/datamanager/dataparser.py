@@ -112,7 +112,7 @@ class SplatReplaceDataParser(Nerfstudio):
     def _generate_dataparser_outputs(self, split: str = "train") -> DataparserOutputs:
         transforms_path = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
         if not transforms_path.exists() and self.config.data.suffix != ".json":
-            from splatreplace_ns.masks.colmap_input import colmap_to_transforms, find_sparse_model
+            from splatreplace_ns.datamanager.colmap_input import colmap_to_transforms, find_sparse_model
 
             if find_sparse_model(self.config.data) is not None:  # a COLMAP capture: written once, then reused
                 CONSOLE.log(f"{self.config.data}: no transforms.json; writing it from the COLMAP model")

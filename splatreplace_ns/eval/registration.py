@@ -16,7 +16,7 @@ from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
-from splatreplace_ns.register.errors import rotation_error_deg, translation_error_rel
+from splatreplace_ns.poses.errors import rotation_error_deg, translation_error_rel
 
 
 def split_similarity(pose: np.ndarray) -> Tuple[np.ndarray, np.ndarray, float]:

@@ -199,7 +199,7 @@ def instance_gt_ids(pipeline) -> Tuple[Dict[int, int], Optional[str]]:
 
     An instance selected from ``clicks.json`` records its click as ``source = "click <index> (...)"``;
     the click's ground-truth id is ``eval.segmentation.click_gt_ids``. Instances labelled from the ground-truth
-    masks (``source = "ground truth"``, the oracle of ``splatreplace_ns.bench.oracle``) carry that id already.
+    masks (``source = "ground truth"``, the oracle of ``splatreplace_ns.tools.bench.oracle``) carry that id already.
     Instances selected otherwise (the viewer) have no ground-truth id.
     """
     from splatreplace_ns.eval.segmentation import click_gt_ids
@@ -210,7 +210,7 @@ def instance_gt_ids(pipeline) -> Tuple[Dict[int, int], Optional[str]]:
     by_click = click_gt_ids(pipeline, clicks)
     mapping = {}
     for inst in pipeline.model.instances:
-        if inst.get("source") == "ground truth":  # labelled from the ground-truth masks (bench.oracle): same ids
+        if inst.get("source") == "ground truth":  # labelled from the ground-truth masks (tools.bench.oracle): same ids
             mapping[int(inst["id"])] = int(inst["id"])
             continue
         match = _CLICK_SOURCE.match(str(inst.get("source", "")))
@@ -224,7 +224,7 @@ def object_size(cls: str, pose: np.ndarray) -> Optional[float]:
     """Bounding-box diagonal of a simulator class's mesh in the frame of ``pose`` (its scale applied);
     None for classes the simulator does not know."""
     from splatreplace_ns.eval.registration import split_similarity
-    from splatreplace_ns.sim import CLASSES, class_mesh
+    from splatreplace_ns.tools.sim import CLASSES, class_mesh
 
     if cls not in CLASSES:
         return None

@@ -59,7 +59,7 @@ def click_gt_ids(pipeline, clicks_path: Path) -> Dict[int, int]:
     The entry's ``"id"`` when given (the simulator writes it), else the ground-truth mask value under the
     clicked pixel of its training view (0 when the click is on ground-truth background).
     """
-    from splatreplace_ns.segment.clicks import load_clicks, pixel_index
+    from splatreplace_ns.datamanager.clicks import load_clicks, pixel_index
 
     raw = json.loads(Path(clicks_path).read_text())
     train = pipeline.datamanager.train_dataset
@@ -82,7 +82,7 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
     """Selects the instances from the clicks (no carving) and scores the masks they give in a set of views.
 
     The masks of a view are its rendered features thresholded against the click queries
-    (``segment.select.masks_from_rendered_features``, τ and min_alpha from the pipeline's segmentation
+    (``instances.select.masks_from_rendered_features``, τ and min_alpha from the pipeline's segmentation
     config), scored against the ground-truth masks with :func:`segmentation_scores`. A click that cannot
     become an instance counts as a missed instance (IoU 0), not a crash. The pipeline's selection and the
     model's train/eval mode are left as they were.
@@ -100,9 +100,9 @@ def score_views_from_clicks(pipeline, clicks_path: Path, dataset=None, reference
         :func:`segmentation_scores` plus ``labels`` ([N] per-Gaussian labels of the replayed selection),
         ``failures`` (messages of the rejected clicks) and ``pred_to_gt``.
     """
-    from splatreplace_ns.segment.clicks import load_clicks, pixel_index
-    from splatreplace_ns.segment.instances import SelectionError
-    from splatreplace_ns.segment.select import masks_from_rendered_features
+    from splatreplace_ns.datamanager.clicks import load_clicks, pixel_index
+    from splatreplace_ns.instances.from_clicks import SelectionError
+    from splatreplace_ns.instances.select import masks_from_rendered_features
 
     model = pipeline.model
     was_training, previous_selection = model.training, pipeline.selection
@@ -168,7 +168,7 @@ def score_gaussian_labels_in_views(model, labels: torch.Tensor, dataset, dataman
     Returns:
         :func:`segmentation_scores` over the instances that the labels hold.
     """
-    from splatreplace_ns.masks.render import BorderConfig, render_instance_masks
+    from splatreplace_ns.instances.masks2d import BorderConfig, render_instance_masks
 
     ids = sorted(int(i) for i in torch.unique(labels) if int(i) > 0)
     preds, gts = [], []

@@ -30,21 +30,21 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import track
 
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
-from splatreplace_ns.masks.command import ClickMasksConfig
+from splatreplace_ns.method.masks_command import ClickMasksConfig
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.render import world_to_camera
-from splatreplace_ns.register.pipeline import InstanceGaussians, RegistrationConfig, polish_chosen, with_floor_up_axis
-from splatreplace_ns.segment.carving import carve_mask, carved_instance
+from splatreplace_ns.poses.register import InstanceGaussians, RegistrationConfig, polish_chosen, with_floor_up_axis
+from splatreplace_ns.instances.carve import carve_mask, carved_instance
 from splatreplace_ns.datamanager.validate import image_size
-from splatreplace_ns.segment.clicks import (
+from splatreplace_ns.datamanager.clicks import (
     Click, check_clicks, clicks_digest, clicks_file_appeared, interior_pixel, load_clicks, pixel_index,
 )
-from splatreplace_ns.segment.contrastive import ContrastiveLossConfig, contrastive_loss
-from splatreplace_ns.segment.instances import InstanceSelection, SelectionError, query_at_pixel
-from splatreplace_ns.segment.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
-from splatreplace_ns.segment.voting import Votes, snap_query, vote_training_views, voted_features, votes_from_labels
-from splatreplace_ns.segment.voting import background_query as voting_background_query
-from splatreplace_ns.register.gate import ReplacementGateConfig, choose_pose, gate_registrations, instance_id_maps
+from splatreplace_ns.features.contrastive import ContrastiveLossConfig, contrastive_loss
+from splatreplace_ns.instances.from_clicks import InstanceSelection, SelectionError, query_at_pixel
+from splatreplace_ns.instances.select import mask_coverage_counts, masks_from_rendered_features, undercovered_instances
+from splatreplace_ns.instances.lift import Votes, snap_query, vote_training_views, voted_features, votes_from_labels
+from splatreplace_ns.instances.lift import background_query as voting_background_query
+from splatreplace_ns.poses.gate import ReplacementGateConfig, choose_pose, gate_registrations, instance_id_maps
 from splatreplace_ns.template.revert import RevertGateConfig, revert_instances, score_replaced_instances
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.viewer.rays import ray_camera
@@ -82,7 +82,7 @@ class SegmentationConfig:
     lift: Literal["contrastive", "voting"] = "contrastive"
     """How the 2D instance masks become per-Gaussian instances. contrastive: train per-Gaussian features for
     --pipeline.contrastive-iterations steps (paper §4.1); voting: no contrastive stage, each Gaussian takes the
-    mask label that gets most of its blending weight over the training views (``segment.voting``), right after
+    mask label that gets most of its blending weight over the training views (``instances.lift``), right after
     the base stage (contrastive-iterations > 0 still turns segmentation on). Measured in docs/benchmarks.md."""
     vote_min_share: float = 0.0
     """Voting lift: a Gaussian's winning label needs more than this share of its weight, else it stays background."""
@@ -292,8 +292,8 @@ class SplatReplacePipeline(VanillaPipeline):
     def _check_clicks_for_masks(self) -> None:
         """A capture without masks needs clicks to make them (clicks.json, or the viewer when the base stage
         ends); say so before the base stage trains."""
-        from splatreplace_ns.masks.base import frame_cameras
-        from splatreplace_ns.masks.viewer_clicks import MaskClickControls
+        from splatreplace_ns.method.masks_base import frame_cameras
+        from splatreplace_ns.method.masks_viewer import MaskClickControls
 
         data = self.transforms_path().parent
         # cameras the masks cannot be rendered for (fisheye) would otherwise stop the run after the base stage
@@ -319,7 +319,7 @@ class SplatReplacePipeline(VanillaPipeline):
 
     def _mask_inputs(self):
         """The frames of the capture and the masks' options (the pipeline's ``masks`` config)."""
-        from splatreplace_ns.masks.base import frame_cameras
+        from splatreplace_ns.method.masks_base import frame_cameras
 
         transforms = self.transforms_path()
         outputs = self.datamanager.train_dataparser_outputs
@@ -334,8 +334,8 @@ class SplatReplacePipeline(VanillaPipeline):
         the instances at the end of the contrastive stage; or until a clicks.json is written meanwhile (nobody
         at the viewer), which is then used instead. Returns the renders and clustering the clicks were
         checked against, for :meth:`make_instance_masks`."""
-        from splatreplace_ns.masks.command import mask_click_functions, model_clustering
-        from splatreplace_ns.masks.viewer_clicks import render_frames, write_clicks_json
+        from splatreplace_ns.method.masks_command import mask_click_functions, model_clustering
+        from splatreplace_ns.method.masks_viewer import render_frames, write_clicks_json
 
         frames, command = self._mask_inputs()
         was_training = self.model.training
@@ -367,8 +367,8 @@ class SplatReplacePipeline(VanillaPipeline):
         written beside transforms.json (``instance_masks/``; transforms.json itself is not changed) and
         loaded into the datamanager, so that the contrastive stage trains on them. ``renders`` and
         ``clustering``: those the viewer's clicks were checked against, when they were made there."""
-        from splatreplace_ns.masks.command import masks_from_model
-        from splatreplace_ns.masks.writer import write_dataset_masks
+        from splatreplace_ns.method.masks_command import masks_from_model
+        from splatreplace_ns.datamanager.mask_writer import write_dataset_masks
 
         start = time.perf_counter()
         transforms = self.transforms_path()
@@ -430,7 +430,7 @@ class SplatReplacePipeline(VanillaPipeline):
 
     @torch.no_grad()
     def lift_votes(self) -> Votes:
-        """Voting lift: the training masks' labels voted onto the Gaussians (``segment.voting``), kept while the
+        """Voting lift: the training masks' labels voted onto the Gaussians (``instances.lift``), kept while the
         Gaussian set is the same (``votes_time_s``: seconds of the last vote)."""
         votes = self._lift_votes
         if votes is None or votes.labels.shape[0] != self.model.num_points:
@@ -705,7 +705,7 @@ class SplatReplacePipeline(VanillaPipeline):
     @torch.no_grad()
     def choose_poses_by_images(self, instances: Dict[int, InstanceGaussians], config: RegistrationConfig) -> float:
         """Chooses each registered instance's pose among its candidates by how well the template placed under it
-        explains the instance's training pixels (``splatreplace_ns.register.gate.choose_pose``), then polishes it
+        explains the instance's training pixels (``splatreplace_ns.poses.gate.choose_pose``), then polishes it
         as registration polishes its own choice; an ambiguous choice leaves the instance as it was. An instance seen
         in no training view keeps registration's decision. Returns the seconds it took."""
         start = time.perf_counter()
@@ -821,7 +821,7 @@ class SplatReplacePipeline(VanillaPipeline):
         return [int(i) for i, r in (getattr(self.model, "registration", None) or {}).items() if not r.get("success")]
 
     def pose_check_inputs(self):
-        """What a pose is checked against the training images with (``splatreplace_ns.register.gate``): the scene
+        """What a pose is checked against the training images with (``splatreplace_ns.poses.gate``): the scene
         as carving leaves it, whichever instances are replaced → (Gaussians with ``GAUSSIAN_KEYS``, [N] instance
         labels, training images, render function ``(view, Gaussians, extra) → (rgb, extra)``)."""
         model = self.model
@@ -841,7 +841,7 @@ class SplatReplacePipeline(VanillaPipeline):
 
     @torch.no_grad()
     def gate_poses(self, transforms: Dict[int, torch.Tensor], templates: Dict[str, int], classes: Dict[int, str]) -> List[int]:
-        """Checks each registered pose against the training images (``splatreplace_ns.register.gate``). A better
+        """Checks each registered pose against the training images (``splatreplace_ns.poses.gate``). A better
         turn found there replaces the pose in ``transforms``; returns the instances refused, which are marked as
         not registered and stay as they are."""
         start = time.perf_counter()

@@ -96,7 +96,7 @@ def merge_union(part: Dict[str, Tensor], reference: Tensor, cells_per_radius: in
     Returns:
         [k] long indices into the union, sorted.
     """
-    from splatreplace_ns.register.virtual_cameras import fit_sphere
+    from splatreplace_ns.poses.virtual_cameras import fit_sphere
 
     ref = reference.detach().cpu().double().numpy()
     if len(ref) < 2 or len(part["means"]) < 2 or cells_per_radius <= 0:

@@ -14,7 +14,7 @@ import torch
 
 from nerfstudio.viewer.viewer_elements import ViewerClick
 
-from splatreplace_ns.segment.instances import SelectionError
+from splatreplace_ns.instances.from_clicks import SelectionError
 from splatreplace_ns.viewer.click_controls import ClickControls
 
 if TYPE_CHECKING:

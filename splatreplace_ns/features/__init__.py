@@ -1,0 +1,1 @@
+"""Per-Gaussian contrastive features (paper §4.1): the loss on rendered features."""

@@ -1,0 +1,60 @@
+"""Instance registration geometry (paper §4.2): virtual cameras around an instance, lifting 2D matches to
+3D with rendered depth, robust PnP and the source→template transform, ICP / FPFH-RANSAC, 2D matchers and
+pose errors modulo symmetry."""
+
+from splatreplace_ns.poses.errors import geodesic_deg, rotation_error_deg, translation_error_rel
+from splatreplace_ns.poses.icp import fpfh_ransac, refine_icp
+from splatreplace_ns.poses.lifting import backproject, project
+from splatreplace_ns.poses.matching import MATCHERS, Features, Matcher, make_matcher, match, rank_view_pairs
+from splatreplace_ns.poses.register import (
+    InstanceGaussians,
+    InstanceViews,
+    RegistrationConfig,
+    RegistrationResult,
+    choose_templates,
+    register_instance,
+    register_instances,
+    render_instance_views,
+)
+from splatreplace_ns.poses.pnp import (
+    PnPResult,
+    RelativePose,
+    camera_pose_to_relative,
+    relative_transform_from_pnp,
+    solve_pnp,
+)
+from splatreplace_ns.poses.virtual_cameras import fit_sphere, framing_distance, intrinsics, look_at, sphere_cameras
+
+__all__ = [
+    "MATCHERS",
+    "InstanceGaussians",
+    "InstanceViews",
+    "RegistrationConfig",
+    "RegistrationResult",
+    "choose_templates",
+    "register_instance",
+    "register_instances",
+    "render_instance_views",
+    "Features",
+    "Matcher",
+    "PnPResult",
+    "RelativePose",
+    "backproject",
+    "camera_pose_to_relative",
+    "fit_sphere",
+    "fpfh_ransac",
+    "framing_distance",
+    "geodesic_deg",
+    "intrinsics",
+    "look_at",
+    "make_matcher",
+    "match",
+    "project",
+    "rank_view_pairs",
+    "refine_icp",
+    "relative_transform_from_pnp",
+    "rotation_error_deg",
+    "solve_pnp",
+    "sphere_cameras",
+    "translation_error_rel",
+]

@@ -1,0 +1,546 @@
+"""``splatreplace bench suite``: the whole method against the 3DGS* baseline on a split of random scenes.
+
+The yardstick the method is measured by (the named presets stay as regression scenes). Scenes come from
+``splatreplace sim random`` (:mod:`splatreplace_ns.tools.sim.random_scenes`), in two splits:
+
+* ``dev``: seeds 0–99. Rules and thresholds are chosen on these.
+* ``report``: the fixed seeds :data:`REPORT_SEEDS`. Never used to choose anything; the README's headline figures
+  come from it.
+
+For every scene, ours (base → contrastive → segmentation → registration → shared templates → fine-tuning) and the
+baseline (3DGS*, the same total iterations) train side by side (one core each), and the row gives masked and full
+PSNR of both on the test views, the gain, masked SSIM, segmentation mIoU, registration errors and failures, and the
+time of every stage. The summary gives the mean gain, the worst scene's gain and the share of scenes where ours is
+worse; a plot shows the gain per scene, sorted.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import platform
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple
+
+import torch
+
+from splatreplace_ns.tools.bench.output import fmt_number as _fmt, publish, write_result_json
+from splatreplace_ns.tools.demo import DemoCommand
+
+DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
+REPORT_SEEDS: Tuple[int, ...] = tuple(range(10000, 10008))
+QUICK = {"scenes": 4, "res": "96x72"}
+"""``--quick``: the first 4 dev scenes at 96x72 (same budget), for iterating."""
+WRONG_POSE_DEG = 5.0
+"""An accepted registration further than this from the truth (modulo the class's symmetry) counts as wrong."""
+
+
+@dataclass
+class BenchSuiteConfig:
+    """Ours vs the 3DGS* baseline on every scene of a split of random scenes: one row per scene and a summary."""
+
+    split: Literal["dev", "report"] = "dev"
+    """dev: seeds 0-99 (choose rules and thresholds here); report: seeds 10000-10007 (only report them)."""
+    scenes: Optional[int] = None
+    """Run the first N scenes of the split (default: 8, the whole report split)."""
+    seeds: Optional[Tuple[int, ...]] = None
+    """Run these seeds of the split instead (each must belong to it)."""
+    quick: bool = False
+    """The first 4 dev scenes at 96x72 (overrides --scenes and --res)."""
+    res: str = DemoCommand.res
+    """Image size WxH of the generated scenes (default: the demo's)."""
+    n_train: int = DemoCommand.n_train
+    """Training views per scene."""
+    n_test: int = DemoCommand.n_test
+    """Test views per scene."""
+    base_iterations: int = DemoCommand.base_iterations
+    """Base 3DGS* iterations of ours (default: the demo's budget; the baseline gets base + contrastive + finetune)."""
+    contrastive_iterations: int = DemoCommand.contrastive_iterations
+    """Contrastive-feature iterations of ours."""
+    finetune_iterations: int = DemoCommand.finetune_iterations
+    """Shared-template fine-tuning iterations of ours."""
+    json: Optional[Path] = None
+    """Where to write the results as JSON (and the plot beside it as PNG)."""
+    plot: Optional[Path] = None
+    """Gain-per-scene plot (default: beside --json, else benchmarks/results/suite_<split>.png)."""
+    data_root: Path = Path("benchmarks/data/suite")
+    """Generated scenes are kept here and reused."""
+    out_dir: Path = Path("benchmarks/runs/suite")
+    """Training outputs, one folder per scene and configuration (with that scene's result.json)."""
+    resume: bool = False
+    """Reuse a scene's result.json from an earlier run of the same configuration instead of training it again."""
+    sequential: bool = False
+    """Train the baseline after ours instead of beside it (beside: each on half of the CPU cores)."""
+    registration: str = "ours"
+    """Registration rule of ours (``splatreplace_ns.poses.variants``): ours (the defaults), paper (§4.2 as
+    written: most PnP inliers, rigid ICP, no added rule), or the defaults less one rule: no_upright,
+    no_shape_first, no_multistart, no_icp, no_image_choice (the colour score and the thresholds choose instead of
+    the training images)."""
+    overrides: Tuple[str, ...] = ()
+    """Settings of ours' trainer config as PATH=VALUE, e.g. pipeline.gate.enabled=True (the baseline keeps its own)."""
+    from_segmentation: bool = False
+    """For a variant (--registration or --overrides): resume ours from the checkpoint at the end of segmentation
+    of the same scene's run with the defaults at the same budget, and reuse that run's baseline, so a variant of
+    registration or of a later stage costs its registration and fine-tuning alone. Run the defaults first."""
+    reuse_baseline: bool = False
+    """For a variant of segmentation or of an earlier stage: train ours whole, alone, and take the baseline's
+    figures from the same scene's run with the defaults at the same budget (run the defaults first). Two variants
+    started side by side with OMP_NUM_THREADS=1 each run as ours and the baseline do in the suite."""
+    oracle: Optional[Literal["gt_poses", "gt_instances"]] = None
+    """With --from-segmentation: replace stages by the scene's ground truth (``splatreplace_ns.tools.bench.oracle``).
+    gt_poses registers every instance with the pose its transforms.json implies; gt_instances also labels the
+    Gaussians from its masks. What fine-tuning reaches when the stages before it are exact: the ceiling of the
+    representation at this budget, and the share of the gap each stage leaves."""
+    training_seed: Optional[int] = None
+    """Training seed of ours and the baseline: nerfstudio's machine.seed and the order the training views are drawn
+    in (default: nerfstudio's 42). The same scenes trained again with another seed give the suite's run-to-run
+    spread; the runs go to folders of their own."""
+
+    def main(self) -> Dict:
+        return publish(run_suite(self), print_suite, self.json, self.plot,
+                       Path(f"benchmarks/results/suite_{self.split}.png"), write_gain_plot)
+
+
+def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
+    """The seeds a configuration runs, checked against its split."""
+    pool = DEV_SEEDS if cfg.split == "dev" else REPORT_SEEDS
+    if cfg.quick:
+        if cfg.split != "dev":
+            raise ValueError("--quick is a subset of the dev split; the report split always runs whole")
+        return list(pool[: QUICK["scenes"]])
+    if cfg.seeds:
+        foreign = [s for s in cfg.seeds if s not in pool]
+        if foreign:
+            raise ValueError(f"seeds {foreign} are not in the {cfg.split} split ({pool[0]}-{pool[-1]})")
+        return list(cfg.seeds)
+    count = 8 if cfg.scenes is None else cfg.scenes
+    if not 1 <= count <= len(pool):
+        raise ValueError(f"--scenes must be between 1 and {len(pool)} for the {cfg.split} split, got {count}")
+    return list(pool[:count])
+
+
+def variant_label(cfg: BenchSuiteConfig) -> str:
+    """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
+    ``reg-ours+pipeline.gate.enabled=True``."""
+    parts = [] if cfg.registration == "ours" and not cfg.overrides else [f"reg-{cfg.registration}", *cfg.overrides]
+    return "+".join(parts + ([f"oracle-{cfg.oracle}"] if cfg.oracle else []))
+
+
+def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> Path:
+    """The folder of one scene's runs (ours, baseline, result.json) for this configuration, or with
+    ``default=True`` for the defaults at the same budget."""
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    label = "" if default else variant_label(cfg)
+    safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
+    seed = "" if cfg.training_seed is None else f"_seed{cfg.training_seed}"
+    return cfg.out_dir / (f"{data_name}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
+
+
+def configure_ours(cfg: BenchSuiteConfig):
+    """``configure(trainer_config)``: ours' registration variant and overrides (nothing for the defaults)."""
+    from splatreplace_ns.tools.bench.overrides import apply_overrides
+    from splatreplace_ns.method.config import splat_replace_trainer_config
+    from splatreplace_ns.poses.variants import registration_variant
+
+    # an unknown variant or override stops here, before anything trains
+    trial = apply_overrides(splat_replace_trainer_config(1, 1, 1), cfg.overrides)
+    registration_variant(cfg.registration, trial.pipeline.registration)
+
+    def configure(trainer_config) -> None:
+        pipeline = trainer_config.pipeline
+        pipeline.registration = registration_variant(cfg.registration, pipeline.registration)
+        apply_overrides(trainer_config, cfg.overrides)
+
+    return configure
+
+
+def scene_name(seed: int, res: str, n_train: int, n_test: int) -> str:
+    """Folder name of a generated suite scene, e.g. ``random_7_128x96_48v8``."""
+    return f"random_{seed}_{res}_{n_train}v{n_test}"
+
+
+def cached_random_scene(seed: int, res: str, n_train: int, n_test: int, root: Path) -> Path:
+    """``root/<scene_name>``, generated when absent or written by an older generator."""
+    from splatreplace_ns.tools.sim import is_current_scene, make_scene
+
+    data = Path(root) / scene_name(seed, res, n_train, n_test)
+    if not is_current_scene(data):
+        make_scene("random", data, res=res, seed=seed, n_train=n_train, n_test=n_test)
+    return data
+
+
+class StageClock:
+    """``after_step`` callback that notes the wall time after ours' first step, at the end of its base and
+    contrastive stages (the contrastive stage's last step also runs segmentation; registration runs at the first
+    fine-tuning step) and after its last step. ``at_segmentation(trainer)``, when given, runs right after the
+    segmentation, before registration changes anything (the suite scores the segmentation there)."""
+
+    def __init__(self, base: int, contrastive: int, finetune: int, at_segmentation=None) -> None:
+        self.marks = {0: "first", base - 1: "base_end", base + contrastive - 1: "contrastive_end",
+                      base + contrastive + finetune - 1: "last"}
+        self.times: Dict[str, float] = {}
+        self.at_segmentation = at_segmentation
+
+    def __call__(self, trainer, step: int) -> None:
+        if step in self.marks:
+            if self.marks[step] == "contrastive_end" and self.at_segmentation is not None:
+                start = time.perf_counter()
+                self.at_segmentation(trainer)
+                self.times["scoring"] = time.perf_counter() - start  # not the method's time: taken out below
+            self.times[self.marks[step]] = time.perf_counter() - self.times.get("scoring", 0.0)
+
+    def stages(self, total: float, segmentation: float, registration: float) -> Dict[str, float]:
+        """Seconds per stage of ours; ``setup_and_eval`` is the rest of the run's ``total`` (loading the data,
+        evaluating the test views)."""
+        t = {k: self.times.get(k, float("nan")) for k in ("first", "base_end", "contrastive_end", "last")}
+        stages = {"base": t["base_end"] - t["first"],
+                  "contrastive": t["contrastive_end"] - t["base_end"] - segmentation,
+                  "segmentation": segmentation, "registration": registration,
+                  "finetune": t["last"] - t["contrastive_end"] - registration}
+        stages["setup_and_eval"] = total - (t["last"] - t["first"]) - self.times.get("scoring", 0.0)
+        return stages
+
+
+def _registration_summary(report: Optional[Dict], model_registration: Dict) -> Dict:
+    """Mean and max rotation error of the accepted registrations, failures (not accepted) and wrong ones
+    (accepted but more than WRONG_POSE_DEG off)."""
+    failures = sorted(int(k) for k, v in model_registration.items() if not v["success"])
+    if not report:
+        return {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": failures, "wrong": [],
+                "per_instance": []}
+    rows = [r for r in report["per_instance"] if r["success"]]
+    errors = [r["rotation_error_deg"] for r in rows if r["rotation_error_deg"] is not None]
+    refused = [r for r in report["per_instance"] if not r["success"] and r.get("proposed_rotation_error_deg") is not None]
+    return {
+        "rotation_error_deg_mean": statistics.fmean(errors) if errors else None,
+        "rotation_error_deg_max": max(errors) if errors else None,
+        "failures": failures,
+        "wrong": [r["gt_id"] for r in rows if r["rotation_error_deg"] is not None and r["rotation_error_deg"] > WRONG_POSE_DEG],
+        # what the acceptance test refused: poses within WRONG_POSE_DEG of the truth, and the others
+        "refused_right": [r["gt_id"] for r in refused if r["proposed_rotation_error_deg"] <= WRONG_POSE_DEG],
+        "refused_wrong": [r["gt_id"] for r in refused if r["proposed_rotation_error_deg"] > WRONG_POSE_DEG],
+        "per_instance": report["per_instance"],
+        "gate": {int(k): v["gate"] for k, v in model_registration.items() if "gate" in v},
+    }
+
+
+def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
+    """Generate (or reuse) one scene, train ours and the baseline, and score both."""
+    from splatreplace_ns.tools.bench.template import test_metrics, train_ours_and_baseline
+    from splatreplace_ns.eval.report import registration_report, segmentation_report
+
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    start = time.perf_counter()
+    data = cached_random_scene(seed, res, cfg.n_train, cfg.n_test, cfg.data_root)
+    sim_s = time.perf_counter() - start
+    meta = json.loads((data / "transforms.json").read_text())
+    segmentation: Dict = {}
+
+    def score_segmentation(trainer) -> None:  # the selected instances' masks in the test views, before replacement
+        report, why_not = segmentation_report(trainer.pipeline)
+        segmentation.update(report or {"unavailable": why_not})
+
+    clock = StageClock(B, C, F, at_segmentation=score_segmentation)
+    if cfg.from_segmentation:
+        pair = train_variant_from_segmentation(data, cfg)
+        segmentation.update(pair["segmentation"])
+    elif cfg.reuse_baseline:
+        pair = train_variant_reusing_baseline(data, cfg, clock)
+    else:
+        pair = train_ours_and_baseline(data, run_folder(cfg, data.name), B, C, F, resumable=True,
+                                       parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg),
+                                       seed=cfg.training_seed)
+    pipeline = pair["ours_trainer"].pipeline
+    registration, _ = registration_report(pipeline)
+    times = pair["times"]
+    stages = pair.get("stages") or clock.stages(times["ours"], times.get("segmentation", 0.0),
+                                                times.get("registration", 0.0))
+    ours, baseline = pair["ours"], pair["baseline"]
+    per_instance = {}
+    for key, value in (ours.get("psnr_per_instance") or {}).items():
+        base_value = (baseline.get("psnr_per_instance") or {}).get(key)
+        if key != "0" and base_value is not None:
+            per_instance[key] = {"baseline": base_value, "ours": value, "gain": value - base_value}
+    row = {
+        "seed": seed,
+        "scene": meta["sim"]["scene"],
+        "effects": [k for k, v in meta["sim"]["effects"].items() if v],
+        "instances": len(meta["instances"]),
+        "baseline": {k: baseline.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
+        "ours": {k: ours.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
+        "gain_masked": _diff(ours.get("psnr_masked"), baseline.get("psnr_masked")),
+        "gain_full": _diff(ours.get("psnr"), baseline.get("psnr")),
+        "per_instance": per_instance,
+        "segmentation_miou": segmentation.get("miou"),
+        "segmentation_unavailable": segmentation.get("unavailable"),
+        "registration": _registration_summary(registration, pipeline.model.registration),
+        "replaced": pipeline.model.has_templates,
+        "time_s": {"sim": sim_s, **stages, "ours": times["ours"], "baseline": times["baseline"],
+                   "total": time.perf_counter() - start},
+        "baseline_beside_ours": pair["parallel"],
+        "variant": variant_label(cfg) or "defaults",
+        "resumed_from_segmentation": cfg.from_segmentation,
+        "baseline_reused": cfg.from_segmentation or cfg.reuse_baseline,
+    }
+    del pair, pipeline
+    gc.collect()
+    return row
+
+
+def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
+    """Ours with the variant's settings, resumed from the defaults' run of this scene at the end of segmentation;
+    the baseline's metrics and the segmentation's score are that run's (the same segmentation). → the fields of
+    ``train_ours_and_baseline``'s result the suite reads, with ``segmentation`` and the ``stages`` of this run
+    (base, contrastive and segmentation 0; fine-tuning includes loading and evaluating).
+
+    Raises:
+        FileNotFoundError: when the defaults' run or its checkpoint at the end of segmentation is missing.
+    """
+    from splatreplace_ns.tools.bench.template import _run, test_metrics
+    from splatreplace_ns.method.train import make_trainer_config
+
+    if not variant_label(cfg):
+        raise ValueError("--from-segmentation needs a variant (--registration or --overrides)")
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    default = run_folder(cfg, data.name, default=True)
+    checkpoints = default / "ours" / "splat-replace" / "run" / "nerfstudio_models"
+    if not (checkpoints / f"step-{B + C - 1:09d}.ckpt").exists():
+        raise FileNotFoundError(
+            f"{default}: no run with the defaults that kept its checkpoint at the end of segmentation (step "
+            f"{B + C - 1}); run `splatreplace bench suite` with the same split, scenes and budget first")
+    previous, baseline = defaults_baseline(data, cfg)
+    config = make_trainer_config(data, run_folder(cfg, data.name), B, C, F, experiment_name="ours", progress=True,
+                                 resume_from=(checkpoints, B + C - 1))
+    configure_ours(cfg)(config)
+    before = None
+    if cfg.oracle:
+        from splatreplace_ns.tools.bench.oracle import use_ground_truth
+
+        def before(trainer) -> None:
+            use_ground_truth(trainer.pipeline, instances_too=cfg.oracle == "gt_instances")
+
+    torch.set_num_threads(os.cpu_count() or 1)  # ours alone
+    trainer, seconds = _run(config, before)
+    pipeline = trainer.pipeline
+    registration_s = float(pipeline.registration_report.get("time_s", float("nan")))
+    segmentation = {"miou": previous.get("segmentation_miou"), "unavailable": previous.get("segmentation_unavailable")}
+    if cfg.oracle == "gt_instances":  # the defaults' segmentation is not the one fine-tuned here
+        segmentation = {"unavailable": "the instances are the ground truth's (--oracle gt_instances)"}
+    return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
+            "segmentation": {k: v for k, v in segmentation.items() if v is not None},
+            "times": {"ours": seconds, "baseline": previous["time_s"]["baseline"]},
+            "stages": {"base": 0.0, "contrastive": 0.0, "segmentation": 0.0, "registration": registration_s,
+                       "finetune": seconds - registration_s, "setup_and_eval": 0.0}}
+
+
+def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
+    """The row of the same scene's run with the defaults at the same budget, and its baseline's metrics (with the
+    per-instance PSNR), for a variant that reuses them.
+
+    Raises:
+        FileNotFoundError: when that run has no result.json.
+    """
+    default = run_folder(cfg, data.name, default=True)
+    saved = default / "result.json"
+    if not saved.exists():
+        raise FileNotFoundError(f"{default}: no run with the defaults; run `splatreplace bench suite` with the same "
+                                "split, scenes and budget first")
+    previous = json.loads(saved.read_text())["row"]
+    baseline = dict(previous["baseline"])
+    baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
+    return previous, baseline
+
+
+def train_variant_reusing_baseline(data: Path, cfg: BenchSuiteConfig, clock: "StageClock") -> Dict:
+    """Ours with the variant's settings trained whole (from step 0) in this process, against the baseline of the
+    defaults' run of this scene. → the fields of ``train_ours_and_baseline``'s result the suite reads."""
+    from splatreplace_ns.tools.bench.template import _run, test_metrics
+    from splatreplace_ns.method.train import make_trainer_config
+
+    if not variant_label(cfg):
+        raise ValueError("--reuse-baseline needs a variant (--registration or --overrides)")
+    previous, baseline = defaults_baseline(data, cfg)
+    config = make_trainer_config(data, run_folder(cfg, data.name), cfg.base_iterations, cfg.contrastive_iterations,
+                                 cfg.finetune_iterations, experiment_name="ours", progress=True)
+    configure_ours(cfg)(config)
+    trainer, seconds = _run(config, after_step=clock)
+    pipeline = trainer.pipeline
+    times = {"ours": seconds, "baseline": previous["time_s"]["baseline"],
+             "segmentation": float(pipeline.segmentation_report.get("time_s", float("nan"))),
+             "registration": float(pipeline.registration_report.get("time_s", float("nan")))}
+    return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
+            "times": times}
+
+
+def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
+    return None if a is None or b is None else a - b
+
+
+def summarise(rows: List[Dict]) -> Dict:
+    """Mean gain, worst scene's gain, share of scenes where ours is worse (masked PSNR), and the same for full
+    images; instances that lost more than 1 dB; wrong or failed registrations."""
+    masked = [r["gain_masked"] for r in rows if r["gain_masked"] is not None]
+    full = [r["gain_full"] for r in rows if r["gain_full"] is not None]
+    losses = [{"seed": r["seed"], "instance": int(k), "gain": v["gain"]}
+              for r in rows for k, v in r["per_instance"].items() if v["gain"] < -1.0]
+    return {
+        "scenes": len(rows),
+        "gain_masked_mean": statistics.fmean(masked) if masked else None,
+        "gain_masked_worst": min(masked) if masked else None,
+        "share_worse_masked": sum(g < 0 for g in masked) / len(masked) if masked else None,
+        "gain_full_mean": statistics.fmean(full) if full else None,
+        "gain_full_worst": min(full) if full else None,
+        "share_worse_full": sum(g < 0 for g in full) / len(full) if full else None,
+        "instances_losing_over_1db": losses,
+        "wrong_registrations": sum(len(r["registration"]["wrong"]) for r in rows),
+        "failed_registrations": sum(len(r["registration"]["failures"]) for r in rows),
+        "refused_right": sum(len(r["registration"].get("refused_right", [])) for r in rows),
+        "refused_wrong": sum(len(r["registration"].get("refused_wrong", [])) for r in rows),
+        "segmentation_miou_mean": statistics.fmean(m) if (m := [r["segmentation_miou"] for r in rows
+                                                                if r["segmentation_miou"] is not None]) else None,
+    }
+
+
+def run_suite(cfg: BenchSuiteConfig) -> Dict:
+    from splatreplace_ns.eval.report import versions
+
+    seeds = split_seeds(cfg)
+    res = QUICK["res"] if cfg.quick else cfg.res
+    cores = os.cpu_count() or 1
+    torch.set_num_threads(max(1, cores if cfg.sequential else cores // 2))
+    t0 = time.perf_counter()
+    configuration = {"res": res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+                     "contrastive_iterations": cfg.contrastive_iterations,
+                     "finetune_iterations": cfg.finetune_iterations, "registration": cfg.registration,
+                     "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation,
+                     **({"reuse_baseline": True} if cfg.reuse_baseline else {}),
+                     **({"training_seed": cfg.training_seed} if cfg.training_seed is not None else {})}
+    if cfg.oracle is not None:
+        configuration["oracle"] = cfg.oracle
+        if not cfg.from_segmentation:
+            raise ValueError("--oracle replaces the stages after segmentation's checkpoint: it needs "
+                             "--from-segmentation (run the defaults first)")
+    if cfg.training_seed is not None and (cfg.reuse_baseline or cfg.from_segmentation):
+        raise ValueError("--training-seed trains ours and the baseline again; it does not combine with "
+                         "--reuse-baseline or --from-segmentation (they reuse the runs of the default seed)")
+    rows = []
+    for k, seed in enumerate(seeds):
+        saved = run_folder(cfg, scene_name(seed, res, cfg.n_train, cfg.n_test)) / "result.json"
+        if cfg.resume and saved.exists():
+            previous = json.loads(saved.read_text())
+            if previous.get("configuration") == configuration:
+                print(f"[suite] scene {k + 1}/{len(seeds)} (seed {seed}): reusing {saved}", flush=True)
+                rows.append(previous["row"])
+                continue
+        print(f"[suite] scene {k + 1}/{len(seeds)} (seed {seed}) ...", flush=True)
+        row = run_scene(seed, cfg, res)
+        write_result_json({"configuration": configuration, "row": row}, saved)
+        rows.append(row)
+        g = row["gain_masked"]
+        print(f"[suite] seed {seed}: masked gain {'n/a' if g is None else f'{g:+.2f} dB'} "
+              f"({row['time_s']['total']:.0f} s)", flush=True)
+    return {
+        "benchmark": "suite",
+        "split": cfg.split,
+        "seeds": seeds,
+        "quick": cfg.quick,
+        "variant": variant_label(cfg) or "defaults",
+        "parameters": {**configuration, "baseline_iterations": cfg.base_iterations + cfg.contrastive_iterations
+                       + cfg.finetune_iterations, "sequential": cfg.sequential},
+        "scenes": rows,
+        "summary": summarise(rows),
+        "time_s": sum(row["time_s"]["total"] for row in rows),  # every scene's, those reused by --resume too
+        "wall_s_this_run": time.perf_counter() - t0,
+        "machine": {"platform": platform.platform(), "cpu_count": cores, "cuda": torch.cuda.is_available()},
+        "versions": versions(),
+        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
+    }
+
+
+def scene_label(row: Dict) -> str:
+    """Short description of a scene: its classes and counts."""
+    return ", ".join(f"{g['count']} {g['cls']}" for g in row["scene"]["groups"])
+
+
+def _console():
+    """A rich console, wide enough for the suite's table when the output is a file or a pipe."""
+    from rich.console import Console
+
+    console = Console()
+    return console if console.is_terminal else Console(width=200)
+
+
+def print_suite(result: Dict) -> None:
+    from rich.table import Table
+
+    console = _console()
+    table = Table(title=f"bench suite, {result['split']} split ({result['parameters']['res']}, "
+                        f"ours {result['parameters']['base_iterations']}+{result['parameters']['contrastive_iterations']}"
+                        f"+{result['parameters']['finetune_iterations']} vs 3DGS* "
+                        f"{result['parameters']['baseline_iterations']} iterations)")
+    columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "masked SSIM", "mIoU",
+               "rot. err. ° mean / max", "failed / wrong", "s: base / contr. / seg. / reg. / fine")
+    for col in columns:
+        table.add_column(col)
+    for r in result["scenes"]:
+        reg, t = r["registration"], r["time_s"]
+        gain = r["gain_masked"]
+        colour = "green" if gain is not None and gain >= 0 else "red"
+        table.add_row(
+            str(r["seed"]), scene_label(r),
+            f"{_fmt(r['baseline']['psnr_masked'])} → {_fmt(r['ours']['psnr_masked'])} "
+            f"[{colour}]({_fmt(gain, signed=True)})[/]",
+            f"{_fmt(r['baseline']['psnr'])} → {_fmt(r['ours']['psnr'])} ({_fmt(r['gain_full'], signed=True)})",
+            f"{_fmt(r['baseline']['ssim_masked'], 3)} → {_fmt(r['ours']['ssim_masked'], 3)}",
+            _fmt(r["segmentation_miou"], 3),
+            f"{_fmt(reg['rotation_error_deg_mean'], 1)} / {_fmt(reg['rotation_error_deg_max'], 1)}",
+            f"{len(reg['failures'])} / {len(reg['wrong'])}",
+            " / ".join(f"{t[k]:.0f}" for k in ("base", "contrastive", "segmentation", "registration", "finetune")),
+        )
+    console.print(table)
+    s = result["summary"]
+    console.print(
+        f"masked PSNR gain: mean {_fmt(s['gain_masked_mean'], signed=True)} dB, worst scene "
+        f"{_fmt(s['gain_masked_worst'], signed=True)} dB, ours worse on {_fmt(100 * (s['share_worse_masked'] or 0), 0)} % "
+        f"of {s['scenes']} scenes; full-image gain mean {_fmt(s['gain_full_mean'], signed=True)} dB, worst "
+        f"{_fmt(s['gain_full_worst'], signed=True)} dB; instances losing > 1 dB: {len(s['instances_losing_over_1db'])}; "
+        f"registrations not accepted {s['failed_registrations']} (of them within {WRONG_POSE_DEG:.0f}° of the truth "
+        f"{s.get('refused_right', 0)}, further {s.get('refused_wrong', 0)}), accepted wrong (> {WRONG_POSE_DEG:.0f}°) "
+        f"{s['wrong_registrations']}; {result['time_s'] / 60:.0f} min in all"
+    )
+
+
+def write_gain_plot(result: Dict, path: Path) -> None:
+    """Bar chart of the masked-PSNR gain per scene, sorted (red: ours worse), with the full-image gain as dots."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sorted((r for r in result["scenes"] if r["gain_masked"] is not None), key=lambda r: r["gain_masked"])
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(rows) + 2.0), 3.6), dpi=120)
+    x = list(range(len(rows)))
+    gains = [r["gain_masked"] for r in rows]
+    ax.bar(x, gains, color=["#c0392b" if g < 0 else "#27ae60" for g in gains], label="masked PSNR gain")
+    ax.plot(x, [r["gain_full"] if r["gain_full"] is not None else float("nan") for r in rows], "o", color="#34495e",
+            markersize=4, label="full-image PSNR gain")
+    ax.axhline(0.0, color="black", linewidth=0.8)
+    s = result["summary"]
+    if s["gain_masked_mean"] is not None:
+        ax.axhline(s["gain_masked_mean"], color="#2980b9", linestyle="--", linewidth=1,
+                   label=f"mean masked gain {s['gain_masked_mean']:+.2f} dB")
+    ax.set_xticks(x, [str(r["seed"]) for r in rows], rotation=90 if len(rows) > 16 else 0)
+    ax.set_xlabel("scene (seed), sorted by masked gain")
+    ax.set_ylabel("ours − 3DGS* (dB)")
+    ax.set_title(f"bench suite, {result['split']} split: ours worse on "
+                 f"{sum(g < 0 for g in gains)} of {len(gains)} scenes")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
