@@ -30,7 +30,8 @@ import tyro
 from splatreplace_ns.tools.bench.output import write_result_json
 from splatreplace_ns.tools.bench.register import load_pipeline
 from splatreplace_ns.tools.bench.suite import DEV_SEEDS, WRONG_POSE_DEG
-from splatreplace_ns.poses.register import RegistrationConfig, choose_candidate
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.refine import choose_candidate
 
 SEGMENTATION_STEP = 1999  # end of the contrastive stage with the demo's budget (1500 + 500)
 CANDIDATE_RIGHT_DEG = 10.0  # a candidate before the upright polish, which brings a few degrees
@@ -64,6 +65,7 @@ def record_candidates(run: Path, views: Tuple[int, ...] = ()) -> Dict:
     """Registration of the run's segmented scene with the thresholds off; the report of every instance with its
     candidates scored against the truth. → {"per_instance": [...], "time_s"}."""
     from splatreplace_ns.eval.report import registration_report
+    from splatreplace_ns.tools.sim.scene import class_size
 
     pipeline = load_pipeline(run / "ours/splat-replace/run/config.yml", SEGMENTATION_STEP)
     pipeline.config.registration = replace(pipeline.config.registration, min_fitness=0.0, min_photometric_fitness=0.0,
@@ -72,7 +74,7 @@ def record_candidates(run: Path, views: Tuple[int, ...] = ()) -> Dict:
     with torch.no_grad():
         pipeline.run_registration()
     seconds = time.perf_counter() - start
-    report, why = registration_report(pipeline)
+    report, why = registration_report(pipeline, class_size)
     if report is None:
         raise RuntimeError(f"{run}: no registration report ({why})")
     start = time.perf_counter()

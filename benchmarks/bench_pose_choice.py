@@ -91,6 +91,7 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
     import torch
 
     from splatreplace_ns.eval.report import registration_report
+    from splatreplace_ns.tools.sim.scene import class_size
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
     from splatreplace_ns.poses.register import with_floor_up_axis
 
@@ -114,7 +115,7 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
         start = time.perf_counter()
         pipeline.choose_poses_by_images(instances, dataclasses.replace(registration, **VARIANTS[name]))
         seconds = time.perf_counter() - start
-        report, why = registration_report(pipeline)
+        report, why = registration_report(pipeline, class_size)
         if report is None:
             raise RuntimeError(f"seed {seed}: {why}")
         rows = [{"instance": r["instance"], "success": r["success"], "rotation_error_deg": r["rotation_error_deg"],

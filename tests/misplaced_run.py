@@ -8,7 +8,7 @@ from typing import Callable, Dict
 import numpy as np
 
 from splatreplace_ns.tools.bench import oracle
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config
 from splatreplace_ns.tools.sim import make_scene
 from scenes import train_patched
@@ -23,7 +23,7 @@ def train_with_one_misplaced_copy(tmp_path_factory, finetune_iterations: int, co
     misplaced: Dict[str, int] = {}
 
     def misregistered(self, instances, classes, config):
-        results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+        results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self.datamanager))
         victim = next(i for i, r in sorted(results.items()) if r.template_id != i and r.success)
         size = float(np.ptp(np.asarray(instances[victim].means, dtype=np.float64), axis=0).max())
         T = np.array(results[victim].transform, dtype=np.float64)
@@ -39,5 +39,5 @@ def train_with_one_misplaced_copy(tmp_path_factory, finetune_iterations: int, co
     config.pipeline.datamanager.contrastive_uniform_samples = 1024
     config.pipeline.datamanager.contrastive_mask_samples = 512
     configure(config)
-    trainer = train_patched(config, (SplatReplaceDataManager, "register_instances", misregistered))
+    trainer = train_patched(config, (SplatReplacePipeline, "register_instances", misregistered))
     return trainer, misplaced["id"]

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from splatreplace_ns.poses.virtual_cameras import look_at
+from splatreplace_ns.render.cameras import look_at
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 

@@ -9,7 +9,7 @@ import pytest
 from splatreplace_ns.tools.bench.mask_passes import (
     PASSES, BenchMaskPassesConfig, summarise_passes, variant_settings,
 )
-from splatreplace_ns.instances.geometric import ClusteringConfig
+from splatreplace_ns.instances.geometric_config import ClusteringConfig
 
 
 def test_every_variant_changes_real_settings_away_from_the_defaults(monkeypatch):

@@ -9,7 +9,7 @@ import pytest
 
 from splatreplace_ns.tools.bench.overrides import apply_overrides, parse_like
 from splatreplace_ns.method.config import splat_replace_trainer_config
-from splatreplace_ns.poses.register import RegistrationConfig
+from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.variants import PAPER_REGISTRATION, REGISTRATION_VARIANTS, registration_variant
 
 

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from benchmark_scripts import load_benchmark
-from splatreplace_ns.poses.register import RegistrationConfig
+from splatreplace_ns.poses.config import RegistrationConfig
 
 
 @pytest.fixture(scope="module")

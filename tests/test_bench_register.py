@@ -17,8 +17,8 @@ from splatreplace_ns.tools.bench.register import (
     rigid_part,
     scale_intrinsics,
 )
-from splatreplace_ns.poses.virtual_cameras import look_at
-from splatreplace_ns.instances.gt_labels import labels_from_masks
+from splatreplace_ns.render.cameras import look_at
+from splatreplace_ns.tools.bench.gt_labels import labels_from_masks
 
 torch.set_num_threads(1)
 

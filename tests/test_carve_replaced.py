@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from splatreplace_ns.tools.bench import oracle
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config
 from splatreplace_ns.instances.carve import carved_instance
@@ -43,7 +43,7 @@ def one_not_replaced(tmp_path_factory):
     state: dict = {}
 
     def registered_but_one(self, instances, classes, config):
-        results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+        results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self.datamanager))
         victim = next(i for i, r in sorted(results.items()) if r.template_id != i and r.success)
         results[victim].success = False
         state["victim"] = victim
@@ -69,7 +69,7 @@ def one_not_replaced(tmp_path_factory):
     config.pipeline.datamanager.contrastive_mask_samples = 512
     config.pipeline.segmentation.carve_only_replaced = True
     config.pipeline.revert.enabled = False
-    trainer = train_patched(config, (SplatReplaceDataManager, "register_instances", registered_but_one),
+    trainer = train_patched(config, (SplatReplacePipeline, "register_instances", registered_but_one),
                             (SplatReplacePipeline, "build_shared_templates", recorded_build))
     return trainer, state
 

@@ -12,7 +12,8 @@ import torch
 
 from scenes import OPENCV_TO_OPENGL, look_at_cv
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
-from splatreplace_ns.datamanager.dataparser import DatasetFormatError, normalise_object_pose
+from splatreplace_ns.datamanager.dataparser import normalise_object_pose
+from splatreplace_ns.datamanager.errors import DatasetFormatError
 
 W, H = 32, 24
 
@@ -313,7 +314,7 @@ def test_frame_cameras_are_the_cameras_nerfstudio_trains_with(tmp_path, how):
     also when the poses were saved through an ``applied_transform`` (``ns-process-data`` writes one) or the
     folder holds ``colmap/sparse/0`` (nerfstudio then assumes its older COLMAP convention); the ground-truth
     object poses follow the same transform."""
-    from splatreplace_ns.method.masks_base import frame_cameras
+    from splatreplace_ns.instances.frames import frame_cameras
 
     meta = write_dataset(tmp_path)
     if how != "none":

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from splatreplace_ns.tools.bench import oracle
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.model import SplatReplaceModel
 from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config
@@ -49,17 +49,17 @@ def _train(tmp_path_factory, register) -> tuple:
             at_start["quiet_changes"].append(float((self.opacities.detach() - before).abs().max()))
 
     trainer = train_patched(config, (SplatReplaceModel, "_finetune_densify", watched_densify),
-                            (SplatReplaceDataManager, "register_instances", register),
+                            (SplatReplacePipeline, "register_instances", register),
                             (SplatReplacePipeline, "build_shared_templates", counting_build))
     return trainer, at_start
 
 
 def ground_truth_registration(self, instances, classes, config):
-    return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+    return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self.datamanager))
 
 
 def no_registration(self, instances, classes, config):
-    results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+    results = oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self.datamanager))
     for result in results.values():
         result.success = False
     return results

@@ -69,7 +69,7 @@ def test_masks_for_every_frame_match_the_ground_truth(base_run):
 def test_a_capture_without_a_split_trains_the_masks_base_on_every_frame(base_run, tmp_path):
     """The tiny scene lists its split (12 training views of 16); without the lists, as ns-process-data writes a
     capture, the base stage of ``splatreplace masks`` trains on all 16 frames, not nerfstudio's nine in ten."""
-    from splatreplace_ns.method.masks_base import load_base
+    from splatreplace_ns.method.masks_command import load_base
 
     scene, capture, _ = base_run
     data = tmp_path / "capture"
@@ -241,9 +241,10 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
     import torch
     import viser
 
-    from splatreplace_ns.method.masks_base import frame_cameras, load_base
-    from splatreplace_ns.method.masks_command import mask_click_controls
-    from splatreplace_ns.method.masks_viewer import write_clicks_json
+    from splatreplace_ns.instances.frames import frame_cameras
+    from splatreplace_ns.method.masks_command import load_base
+    from splatreplace_ns.viewer.mask_clicks import mask_click_controls
+    from splatreplace_ns.datamanager.clicks import write_clicks_json
 
     scene, capture, report = base_run
     data = tmp_path / "viewer_capture"
@@ -251,7 +252,7 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
     cfg = MasksCommand(data, load_config=report["config"], viewer=True)
     base = load_base(report["config"])
     frames = frame_cameras(data / "transforms.json", base.dataparser_transform, base.dataparser_scale)
-    controls = mask_click_controls(base.model, frames, cfg)
+    controls = mask_click_controls(base.model, frames, cfg.settings())
     gt_clicks = json.loads((scene / "clicks.json").read_text())
     gt_meta = json.loads((scene / "transforms.json").read_text())
     gt_mask_of = {Path(f["file_path"]).name: scene / f["instance_mask_path"] for f in gt_meta["frames"]}
@@ -303,7 +304,7 @@ def test_viewer_clicks_make_the_same_masks_as_clicks_json(base_run, tmp_path):
 
 
 def test_viewer_controls_refuse_to_confirm_nothing():
-    from splatreplace_ns.method.masks_viewer import MaskClickControls
+    from splatreplace_ns.viewer.mask_clicks import MaskClickControls
 
     controls = MaskClickControls(lambda *a: None, lambda clicks: None)
     controls.confirm()

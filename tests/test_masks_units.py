@@ -11,7 +11,9 @@ import pytest
 import torch
 
 from splatreplace_ns.tools.bench.masks import boundary_f_score
-from splatreplace_ns.instances.geometric import ClusteringConfig, cluster_gaussians, instance_ids, weighted_median
+from splatreplace_ns.instances.geometric import cluster_gaussians, instance_ids
+from splatreplace_ns.instances.geometric_config import ClusteringConfig
+from splatreplace_ns.instances.point_cloud import weighted_median
 from splatreplace_ns.instances.projection import (
     ClickError, LiftedClick, frames_holding, lift_click, lift_pixel, project_points, visible_by_depth,
 )
@@ -19,7 +21,7 @@ from splatreplace_ns.instances.masks2d import distort_map, grabcut_instance, lab
 from splatreplace_ns.datamanager.mask_writer import write_dataset_masks
 from splatreplace_ns.datamanager.click_masks import with_click_masks
 from splatreplace_ns.datamanager.errors import DatasetFormatError
-from splatreplace_ns.poses.virtual_cameras import look_at
+from splatreplace_ns.render.cameras import look_at
 
 K = torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
@@ -66,7 +68,7 @@ def test_lift_click_rejects_empty_and_outside_pixels():
 def test_viewer_click_pixel_lifts_back_onto_the_clicked_point():
     """A point on a box's outline whose projection rounds onto the floor beside the box becomes the box pixel
     next to it (the floor pixel would lift to the floor); a point no pixel lifts back to gives None."""
-    from splatreplace_ns.method.masks_viewer import consistent_pixel_near
+    from splatreplace_ns.instances.frames import consistent_pixel_near
 
     viewmat = torch.eye(4, dtype=torch.float64)
     depth = torch.full((48, 64, 1), 4.0, dtype=torch.float64)  # floor
@@ -191,7 +193,7 @@ def test_length_unit_counts_views_so_a_far_floor_does_not_set_it():
 def test_refined_plane_does_not_depend_on_the_ransac_sample():
     """Two RANSAC answers a sample apart refine to the same plane and inliers, bit for bit (so the same
     model gives the same mask bytes), and the refit is the least-squares floor."""
-    from splatreplace_ns.instances.geometric import refine_plane
+    from splatreplace_ns.instances.planes import refine_plane
 
     points = boxes_on_a_floor()[0]
     floor = np.array([0.0, 0.0, 1.0, 0.0])
@@ -204,7 +206,7 @@ def test_refined_plane_does_not_depend_on_the_ransac_sample():
 
 
 def test_geodesic_split_gives_a_seedless_clump_to_its_nearest_side():
-    from splatreplace_ns.instances.geometric import geodesic_split
+    from splatreplace_ns.instances.random_walk import geodesic_split
 
     rng = np.random.default_rng(0)
     # two touching boxes along x, plus a tight clump of 30 near-duplicates just beyond the right box (closer
@@ -226,7 +228,8 @@ def test_random_walk_split_cuts_at_the_colour_change_not_at_the_midpoint():
     """Two touching boxes of different colours, the left one clicked at its far end and the right one next to
     the contact: the geodesic cut (colour-weighted) still runs well inside the left box, the random walker's
     nearly at the contact; a seedless clump beyond the right box goes to it."""
-    from splatreplace_ns.instances.geometric import geodesic_split, random_walk_split
+    from splatreplace_ns.instances.random_walk import geodesic_split
+    from splatreplace_ns.instances.random_walk import random_walk_split
 
     rng = np.random.default_rng(0)
     left = rng.uniform([-1.0, 0, 0], [0.0, 1, 1], (600, 3))
@@ -265,7 +268,8 @@ def test_random_walk_split_leaves_the_beam_over_three_posts_to_the_background():
     """Three posts under one beam (a colonnade), each post clicked at its middle: every post point goes to its
     click, while most of the beam between the posts, which the three clicks reach about equally, goes to no
     one; with ``split_min_probability`` 0 every beam point goes to some click."""
-    from splatreplace_ns.instances.geometric import SHARED, random_walk_split
+    from splatreplace_ns.instances.geometric_config import SHARED
+    from splatreplace_ns.instances.random_walk import random_walk_split
 
     xs, posts, beam, means, colours = posts_under_a_beam()
     seeds = [800 * k + int(np.argmin(np.linalg.norm(p - [x, 0, 0.5], axis=1))) for k, (p, x) in enumerate(zip(posts, xs))]
@@ -284,7 +288,7 @@ def test_normal_weight_cuts_the_split_where_the_surface_turns():
     """A horizontal plate and a vertical one of the same colour meeting at an edge (a chair's back against a
     table's top), clicked far out on the plate and near the edge on the upright: without normals the cut runs
     well into the plate, with them it runs along the edge."""
-    from splatreplace_ns.instances.geometric import random_walk_split
+    from splatreplace_ns.instances.random_walk import random_walk_split
 
     rng = np.random.default_rng(0)
     plate = np.c_[rng.uniform(0, 1, (1500, 2)), np.zeros(1500)]  # z = 0, x in [0, 1]
@@ -446,7 +450,7 @@ def test_a_click_on_a_distorted_image_file_lifts_to_the_point_it_shows(tmp_path,
     files when nerfstudio reads images_<downscale>/). A 3D point's pixel in the distorted file (OpenCV's
     projection with the lens, at the file's size) is mapped to the render's pixel, and lifting it at the point's
     depth gives the point back; the map inverts (the viewer writes its clicks through the inverse)."""
-    from splatreplace_ns.method.masks_base import frame_cameras
+    from splatreplace_ns.instances.frames import frame_cameras
     from splatreplace_ns.instances.projection import lift_pixel, view_and_intrinsics
 
     c2w = np.eye(4)
@@ -481,7 +485,7 @@ def test_images_are_read_as_nerfstudio_reads_them_whatever_their_exif_orientatio
     the same ones (OpenCV would otherwise turn the image, and its size would no longer match its camera)."""
     from PIL import Image
 
-    from splatreplace_ns.method.masks_command import read_rgb
+    from splatreplace_ns.instances.masks_from_clicks import read_rgb
 
     pixels = np.zeros((30, 40, 3), np.uint8)
     pixels[:, :20] = (250, 10, 10)  # left half red
@@ -535,7 +539,7 @@ def test_floor_as_background_takes_the_fuzz_a_box_is_linked_to():
     patch; with the floor's Gaussians as the background seed (``background_radius``) the patch is background
     and the box stays whole. Edges onto the floor keep their plain length here: the patch lies 1.7–2.1
     spacings above the floor, where the default tenfold length cuts it off the floor as well."""
-    from splatreplace_ns.instances.geometric import PLANE
+    from splatreplace_ns.instances.geometric_config import PLANE
 
     means, truth, colours = boxes_on_a_floor()
     keep = truth <= 1  # the floor and box a (centre x = -1)
@@ -568,7 +572,7 @@ def test_a_pieces_foot_in_the_boards_plane_band_is_given_back_by_its_colour():
     """A blue post on a flat round foot standing on a wooden board: the foot lies within the board's plane band and goes
     with the plane; ``reclaim_by_colour`` gives back those whose colour is the post class's, and no board
     Gaussian. Off (radius 0), the foot stays with the board."""
-    from splatreplace_ns.instances.geometric import PLANE
+    from splatreplace_ns.instances.geometric_config import PLANE
 
     rng = np.random.default_rng(0)
     board = np.c_[rng.uniform(-1, 1, (8000, 2)), rng.normal(0, 0.002, 8000)]
@@ -613,7 +617,8 @@ def test_geodesic_split_still_makes_every_instance_with_the_colour_steps_on():
 def test_an_island_no_click_reaches_is_adopted_by_its_neighbour():
     """Points the walk reaches only at leak level (probabilities below 1e-6, here favouring the far click) are
     unreached: they go to the side of the nearest reached point."""
-    from splatreplace_ns.instances.geometric import Walk, knn_graph, walk_owners
+    from splatreplace_ns.instances.random_walk import Walk, walk_owners
+    from splatreplace_ns.instances.random_walk import knn_graph
 
     rng = np.random.default_rng(0)
     left = rng.uniform([-1.0, 0, 0], [0.0, 1, 1], (300, 3))
@@ -634,7 +639,7 @@ def test_an_island_no_click_reaches_is_adopted_by_its_neighbour():
 def test_sparse_instances_names_the_copies_the_base_model_barely_holds():
     """An instance far below its class's median count is named (id, class, count, median); classes of fewer
     than three instances, and fraction 0, name none."""
-    from splatreplace_ns.method.masks_command import sparse_instances
+    from splatreplace_ns.instances.masks_from_clicks import sparse_instances
 
     counts = {1: 120, 2: 2900, 3: 3100, 4: 2700, 5: 800, 6: 50, 7: 40}
     classes = {1: "pillar", 2: "pillar", 3: "pillar", 4: "pillar", 5: "pillar", 6: "table", 7: "table"}
@@ -660,7 +665,9 @@ def test_plane_through_a_colonnade_is_not_a_support():
     """Five square posts under a beam on a floor: the floor has nothing under it, a plane through the posts
     has the colonnade on both sides. Only the floor is removed; without the one-side test planes through
     the posts are removed too, and with them part of every post."""
-    from splatreplace_ns.instances.geometric import neighbourhood_spacing, remove_planes, two_sidedness
+    from splatreplace_ns.instances.planes import remove_planes
+    from splatreplace_ns.instances.point_cloud import neighbourhood_spacing
+    from splatreplace_ns.instances.planes import two_sidedness
 
     rng = np.random.default_rng(0)
 
@@ -693,7 +700,7 @@ def test_plane_through_a_colonnade_is_not_a_support():
 def test_the_floor_is_the_lowest_level_plane():
     """Two level planes (the floor at z = 0 and a sheet at z = 0.5) and a wall: with the points the floor is
     the one with the fewest points under it, pointing up whatever its sign; without them the one nearest +z."""
-    from splatreplace_ns.instances.geometric import floor_plane
+    from splatreplace_ns.instances.planes import floor_plane
 
     rng = np.random.default_rng(2)
     points = np.c_[rng.uniform(-1, 1, (500, 2)), rng.uniform(0.0, 1.0, 500)]
@@ -708,7 +715,7 @@ def test_a_copy_on_a_step_has_its_band_measured_from_the_step():
     """A table with a patch of floor beside a leg and one under its top, all raised by 0.4 onto a step: measured
     from the floor every patch is too high to be cut; with the step as the table's ground (``ground``) the patch
     beside goes, the one under the top (held up by the top) stays."""
-    from splatreplace_ns.instances.geometric import cut_off_the_floor
+    from splatreplace_ns.instances.planes import cut_off_the_floor
 
     rng = np.random.default_rng(1)
     spacing, lift = 0.02, np.array([0.0, 0.0, 0.4])
@@ -728,7 +735,7 @@ def test_faint_fuzz_above_the_band_does_not_hold_up_the_fuzz_under_it():
     """A patch of floor beside the table's legs, within the band, under a faint layer of fuzz just above the
     band: counted as support, the faint layer keeps the patch; only opaque Gaussians holding feet up, the patch
     goes and the table stays whole."""
-    from splatreplace_ns.instances.geometric import cut_off_the_floor
+    from splatreplace_ns.instances.planes import cut_off_the_floor
 
     rng = np.random.default_rng(4)
     spacing = 0.02
@@ -750,7 +757,7 @@ def test_what_lies_low_beside_an_object_and_not_under_it_goes_to_the_background(
     """A table labelled with two patches of fuzz 3 spacings above the floor (above the first band): one beside
     a leg, outside the top, the other under the top. With a band 4 spacings high the patch beside goes, the one
     under the top and the whole table stay."""
-    from splatreplace_ns.instances.geometric import cut_off_the_floor
+    from splatreplace_ns.instances.planes import cut_off_the_floor
 
     rng = np.random.default_rng(3)
     spacing = 0.02
@@ -765,7 +772,7 @@ def test_what_lies_low_beside_an_object_and_not_under_it_goes_to_the_background(
     assert (low[:n] == 1).all() and (low[n : n + 80] == 0).all() and (low[n + 80 :] == 1).all()
 
 def test_masks_base_trains_on_every_frame_unless_the_capture_lists_a_split(tmp_path):
-    from splatreplace_ns.method.masks_base import trains_on_every_frame
+    from splatreplace_ns.method.masks_command import trains_on_every_frame
 
     frames = [{"file_path": f"images/{i:04d}.png"} for i in range(4)]
     own = tmp_path / "own.json"
@@ -805,7 +812,8 @@ def test_plane_gaussians_of_the_class_colour_next_to_a_copy_come_back_when_the_p
     """A terracotta abacus flush with a cream beam face: its front went with the face's plane. Counted in the
     plane's colours, the abacus's own Gaussians make terracotta look like the plane's; counted only away from
     the instances, the plane is cream and the abacus front comes back, the face beside it does not."""
-    from splatreplace_ns.instances.geometric import colour_histogram, reclaim_by_colour
+    from splatreplace_ns.instances.geometric import reclaim_by_colour
+    from splatreplace_ns.instances.random_walk import colour_histogram
 
     rng = np.random.default_rng(0)
     # a square shaft's surface under its capital (terracotta top 0.9–1.0), the capital's front (y = 0) in the
@@ -838,7 +846,9 @@ def test_a_board_whose_gaussians_lie_in_a_thick_layer_is_still_a_support():
     """A board seen from every side holds opaque Gaussians in a layer under its top, about as many as the pieces
     on it just above: a level plane, it is removed whatever lies under it (the one-side test, which refuses a
     plane through a row of columns, is for walls)."""
-    from splatreplace_ns.instances.geometric import neighbourhood_spacing, remove_planes, two_sidedness
+    from splatreplace_ns.instances.planes import remove_planes
+    from splatreplace_ns.instances.point_cloud import neighbourhood_spacing
+    from splatreplace_ns.instances.planes import two_sidedness
 
     rng = np.random.default_rng(0)
     top = np.c_[rng.uniform(-1, 1, (12000, 2)), rng.normal(0, 0.002, 12000)]

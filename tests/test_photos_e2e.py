@@ -101,7 +101,7 @@ def test_stages_render_from_the_cameras_nerfstudio_trains_with(capture, tmp_path
     (``sparse/0``, read through pycolmap), the cameras the masks and clicks steps render from equal the
     datamanager's training cameras, and they see the scene as the true cameras do."""
     from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
-    from splatreplace_ns.method.masks_base import frame_cameras
+    from splatreplace_ns.instances.frames import frame_cameras
 
     data = capture["data"]
     if layout == "colmap_sparse0":

@@ -13,7 +13,7 @@ from splatreplace_ns.poses.gate import (
     choose_pose, instance_id_maps, mean_view_psnr, pick_with_margin, pooled_psnr, yaw_rotation,
 )
 from splatreplace_ns.poses.variants import registration_variant
-from splatreplace_ns.poses.register import RegistrationConfig
+from splatreplace_ns.poses.config import RegistrationConfig
 
 from test_replacement_gate import _images, _object, _render_fn, _scene, _views
 

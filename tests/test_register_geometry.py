@@ -23,7 +23,7 @@ from splatreplace_ns.poses import (
     sphere_cameras,
     translation_error_rel,
 )
-from splatreplace_ns.poses.virtual_cameras import look_at
+from splatreplace_ns.render.cameras import look_at
 from scenes import sample_mesh
 from splatreplace_ns.tools.sim import CLASS_SYMMETRY, class_mesh
 
@@ -409,7 +409,8 @@ def test_floor_up_axis_finds_the_floor_not_the_wall():
 
 
 def test_floor_up_axis_falls_back_to_the_prior():
-    from splatreplace_ns.poses.register import RegistrationConfig, with_floor_up_axis
+    from splatreplace_ns.poses.config import RegistrationConfig
+    from splatreplace_ns.poses.register import with_floor_up_axis
     from splatreplace_ns.poses.up_axis import floor_up_axis
 
     rng = np.random.default_rng(1)

@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from splatreplace_ns.poses import make_matcher, rank_view_pairs
-from splatreplace_ns.poses.register import RegistrationConfig, get_matcher
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.register import get_matcher
 from test_register_geometry import _texture
 from test_register_pipeline import FAST, pose_errors, tiny  # noqa: F401  (tiny: the oracle crates scene)
 

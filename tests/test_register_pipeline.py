@@ -15,9 +15,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from splatreplace_ns.poses import rotation_error_deg, translation_error_rel
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.instance import InstanceGaussians
 from splatreplace_ns.poses.register import (
-    InstanceGaussians,
-    RegistrationConfig,
     choose_templates,
     register_instance,
     register_instances,
@@ -124,7 +124,7 @@ def test_register_instances_recovers_ground_truth(tiny):
 
 
 def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
-    from splatreplace_ns.poses.register import _upright_polish
+    from splatreplace_ns.poses.refine import _upright_polish
 
     g = tiny["gaussians"]
     free = register_instance(g[1], g[2], RegistrationConfig(**FAST, upright=False))
@@ -159,7 +159,7 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
 def test_refine_from_a_perturbed_true_pose_comes_back(tiny):
     """refine_from (what the pipeline does to its chosen candidate) brings a pose 4° and a few centimetres off
     the truth back within the registration targets on the oracle crates, upright."""
-    from splatreplace_ns.poses.register import refine_from
+    from splatreplace_ns.poses.refine import refine_from
 
     g, poses = tiny["gaussians"], tiny["poses"]
     true = poses[2] @ np.linalg.inv(poses[1])  # template ≈ true · source
@@ -278,7 +278,7 @@ def test_faint_off_surface_gaussians_do_not_pull_icp(tiny):
 
 
 def test_multistart_poses_turn_about_up_and_match_centroids():
-    from splatreplace_ns.poses.register import multistart_poses
+    from splatreplace_ns.poses.refine import multistart_poses
 
     rng = np.random.default_rng(1)
     src, tgt = rng.normal(size=(50, 3)), rng.normal(size=(40, 3)) + 5.0
@@ -313,7 +313,7 @@ def test_choose_candidate_shape_first_then_colour():
     """Order of the candidate choice: acceptable, shape (fitness within the ratio of the best), colour. A wrong
     pose of a partly seen copy that wins on colour but fits clearly worse (fitness 0.535 against 0.680) loses; one
     that fits about as well does not."""
-    from splatreplace_ns.poses.register import choose_candidate
+    from splatreplace_ns.poses.refine import choose_candidate
 
     cfg = RegistrationConfig()
     ties = [(0, 0, -k) for k in range(3)]

@@ -13,7 +13,8 @@ import torch
 from splatreplace_ns.poses.gate import (
     ReplacementGateConfig, colour_fitted, gate_registrations, judge, psnr, yaw_rotation,
 )
-from splatreplace_ns.poses.virtual_cameras import intrinsics, look_at
+from splatreplace_ns.poses.virtual_cameras import intrinsics
+from splatreplace_ns.render.cameras import look_at
 from splatreplace_ns.render import rasterize
 
 W, H = 64, 48

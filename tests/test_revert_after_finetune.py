@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.poses.virtual_cameras import intrinsics, look_at
+from splatreplace_ns.poses.virtual_cameras import intrinsics
+from splatreplace_ns.render.cameras import look_at
 from splatreplace_ns.render import rasterize
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.template.compose import compose_scene, instance_poses

@@ -13,7 +13,8 @@ import pytest
 
 from splatreplace_ns.tools.sim import CLASS_SYMMETRY, CLASSES, PRESETS, class_mesh
 from splatreplace_ns.tools.sim.cameras import PinholeCamera, intrinsics, look_at, trajectory
-from splatreplace_ns.tools.sim.geometry import class_signed_distance, rotation_z
+from splatreplace_ns.tools.sim.geometry import class_signed_distance
+from splatreplace_ns.tools.sim.primitives import rotation_z
 from splatreplace_ns.tools.sim.render import Renderer
 from splatreplace_ns.tools.sim.textures import albedo
 

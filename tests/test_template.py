@@ -14,16 +14,10 @@ import torch
 from splatreplace_ns.render import rasterize
 from splatreplace_ns.render.projection import quat_to_rotmat
 from splatreplace_ns.render.sh import spherical_harmonics
-from splatreplace_ns.template.build import build_templates, transform_gaussians
-from splatreplace_ns.template.compose import (
-    axis_angle_to_quat,
-    compose_scene,
-    instance_poses,
-    offsets_l1,
-    quat_multiply,
-    rotmat_to_quat,
-    sh_rotation,
-)
+from splatreplace_ns.render.transform import transform_gaussians
+from splatreplace_ns.template.build import build_templates
+from splatreplace_ns.render.transform import axis_angle_to_quat, quat_multiply, rotmat_to_quat, sh_rotation
+from splatreplace_ns.template.compose import compose_scene, instance_poses, offsets_l1
 
 torch.set_num_threads(1)
 

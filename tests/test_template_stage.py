@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch._dynamo.utils import counters
 
-from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManager
+from splatreplace_ns.method.pipeline import SplatReplacePipeline
 from splatreplace_ns.method.train import make_trainer_config, run_training
 from splatreplace_ns.tools.bench import oracle
 from splatreplace_ns.tools.sim import make_scene
@@ -23,7 +23,7 @@ RUN_STATS = {}
 
 def ground_truth_registration(self, instances, classes, config):
     """Stands in for the registration hook: T = P_template · P_instance⁻¹ from the parsed GT poses."""
-    return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self))
+    return oracle.ground_truth_registration(instances, classes, oracle.dataset_poses(self.datamanager))
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def replaced(tmp_path_factory):
     config.pipeline.datamanager.contrastive_uniform_samples = 1024
     config.pipeline.datamanager.contrastive_mask_samples = 512
     patch = pytest.MonkeyPatch()
-    patch.setattr(SplatReplaceDataManager, "register_instances", ground_truth_registration)
+    patch.setattr(SplatReplacePipeline, "register_instances", ground_truth_registration)
     torch._dynamo.reset()  # forget what earlier tests compiled: a compile during this run counts below
     frames_before = counters["frames"]["total"]
     try:

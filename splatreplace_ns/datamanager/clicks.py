@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
 
 from splatreplace_ns.datamanager.errors import DatasetFormatError
+from splatreplace_ns.datamanager.files import write_atomically
 from splatreplace_ns.datamanager.validate import read_json
 
 
@@ -120,3 +124,23 @@ def clicks_digest(clicks: List[Click]) -> str:
 
     canonical = json.dumps([[Path(c.file_path).name, [round(float(v), 2) for v in c.xy], c.cls] for c in clicks])
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+
+def write_clicks_json(path: Path, clicks: Sequence[Click]) -> Optional[Path]:
+    """Writes ``[{"file_path", "xy", "class"}, ...]`` atomically; an existing file is kept beside it as
+    ``clicks.json.before-viewer``. Returns that backup's path, or None."""
+    path = Path(path)
+    backup = None
+    if path.exists():
+        backup = path.with_name(path.name + ".before-viewer")
+        shutil.copyfile(path, backup)
+    entries = [{"file_path": c.file_path, "xy": [pixel_coordinate(c.xy[0]), pixel_coordinate(c.xy[1])], "class": c.cls}
+               for c in clicks]
+    write_atomically(path, json.dumps(entries, indent=2) + "\n")
+    return backup
+
+
+def pixel_coordinate(value: float):
+    """A pixel index as an int; a pixel of a distorted image (mapped from the pinhole render) to 1/100 pixel."""
+    value = round(float(value), 2)
+    return int(value) if value == int(value) else value

@@ -15,7 +15,7 @@ import numpy as np
 
 from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.datamanager.files import write_atomically
-from splatreplace_ns.poses.virtual_cameras import OPENCV_TO_OPENGL
+from splatreplace_ns.render.cameras import OPENCV_TO_OPENGL
 
 SPARSE_CANDIDATES = ("sparse/0", "colmap/sparse/0", "sparse")
 

@@ -213,25 +213,6 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         Ks[:, 1] *= height / cameras.height.float().reshape(-1, 1)
         return viewmats, Ks
 
-    def register_instances(self, instances: Dict, classes: Dict[int, str], config) -> Dict:
-        """The registration hook (paper §4.2): every instance onto its class template.
-
-        Renders the instances through the model's renderer from virtual cameras (or, for the
-        ``no_virtual_views`` ablation, from this datamanager's training cameras).
-
-        Args:
-            instances: {instance id: ``register.InstanceGaussians``}; classes: {instance id: class name};
-            config: ``register.RegistrationConfig``.
-        Returns:
-            {instance id: ``register.RegistrationResult``}.
-        """
-        from splatreplace_ns.poses.register import register_instances
-
-        cameras = None
-        if config.method == "no_virtual_views":
-            cameras = self.training_view_cameras(*config.image_size)
-        return register_instances(instances, classes, config, cameras=cameras)
-
 
 @dataclass
 class CapturedCameras:

@@ -18,7 +18,7 @@ import platform
 import re
 import subprocess
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -220,22 +220,26 @@ def instance_gt_ids(pipeline) -> Tuple[Dict[int, int], Optional[str]]:
     return mapping, (f"instances {unmatched} were not selected from {clicks}" if unmatched else None)
 
 
-def object_size(cls: str, pose: np.ndarray) -> Optional[float]:
-    """Bounding-box diagonal of a simulator class's mesh in the frame of ``pose`` (its scale applied);
-    None for classes the simulator does not know."""
+def object_size(instance: Dict, pose: np.ndarray, class_size: Optional[Callable[[str], Optional[float]]] = None
+                ) -> Optional[float]:
+    """Bounding-box diagonal of a ground-truth instance in the frame of ``pose`` (its scale applied), from the
+    dataset's ``instances[].size`` (the diagonal in the object's own frame), else from ``class_size(class)``;
+    None when neither knows it."""
     from splatreplace_ns.eval.registration import split_similarity
-    from splatreplace_ns.tools.sim import CLASSES, class_mesh
 
-    if cls not in CLASSES:
-        return None
-    mesh = class_mesh(cls)
-    return float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound())) * split_similarity(pose)[2]
+    size = instance.get("size")
+    if size is None and class_size is not None:
+        size = class_size(str(instance.get("class", "")))
+    return None if size is None else float(size) * split_similarity(pose)[2]
 
 
-def registration_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
+def registration_report(
+    pipeline, class_size: Optional[Callable[[str], Optional[float]]] = None
+) -> Tuple[Optional[Dict], Optional[str]]:
     """Registration errors of ``model.registration`` against the dataset's ground-truth poses, or (None, why not).
 
-    Ground-truth poses are the dataparser's, already in the normalised world frame of the model.
+    Ground-truth poses are the dataparser's, already in the normalised world frame of the model; object sizes
+    (for the relative translation error) the dataset's, or ``class_size``'s for a dataset that gives none.
     """
     from splatreplace_ns.eval.registration import registration_errors
 
@@ -251,7 +255,7 @@ def registration_report(pipeline) -> Tuple[Optional[Dict], Optional[str]]:
         return None, note
     poses = {k: np.asarray(i["transform_matrix"], dtype=np.float64) for k, i in posed.items()}
     symmetries = {k: str(i.get("symmetry", "none")) for k, i in posed.items()}
-    sizes = {k: object_size(str(i.get("class", "")), poses[k]) for k, i in posed.items()}
+    sizes = {k: object_size(i, poses[k], class_size) for k, i in posed.items()}
     report = registration_errors(registration, model_to_gt, poses, symmetries, sizes)
     unknown = sorted({str(posed[k].get("class")) for k, s in sizes.items() if s is None})
     notes = [n for n in (note, f"no object size for classes {unknown}: translation errors omitted" if unknown else None) if n]

@@ -5,12 +5,11 @@ pose errors modulo symmetry."""
 from splatreplace_ns.poses.errors import geodesic_deg, rotation_error_deg, translation_error_rel
 from splatreplace_ns.poses.icp import fpfh_ransac, refine_icp
 from splatreplace_ns.poses.lifting import backproject, project
-from splatreplace_ns.poses.matching import MATCHERS, Features, Matcher, make_matcher, match, rank_view_pairs
+from splatreplace_ns.poses.matcher_base import Features, Matcher
+from splatreplace_ns.poses.matching import MATCHERS, make_matcher, match, rank_view_pairs
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.instance import InstanceGaussians, InstanceViews, RegistrationResult
 from splatreplace_ns.poses.register import (
-    InstanceGaussians,
-    InstanceViews,
-    RegistrationConfig,
-    RegistrationResult,
     choose_templates,
     register_instance,
     register_instances,
@@ -23,7 +22,8 @@ from splatreplace_ns.poses.pnp import (
     relative_transform_from_pnp,
     solve_pnp,
 )
-from splatreplace_ns.poses.virtual_cameras import fit_sphere, framing_distance, intrinsics, look_at, sphere_cameras
+from splatreplace_ns.poses.virtual_cameras import fit_sphere, framing_distance, intrinsics, sphere_cameras
+from splatreplace_ns.render.cameras import look_at
 
 __all__ = [
     "MATCHERS",

@@ -39,7 +39,7 @@ from torch import Tensor
 
 from splatreplace_ns.instances.masks2d import labels_from_weights, one_hot_labels
 from splatreplace_ns.poses.errors import geodesic_deg
-from splatreplace_ns.template.build import transform_gaussians
+from splatreplace_ns.render.transform import transform_gaussians
 
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "logit_opacities", "sh")
 

@@ -10,11 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _np(x) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float64)
+from splatreplace_ns.poses.instance import float64_array
 
 
 def project(points_world: np.ndarray, K: np.ndarray, viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -25,12 +21,12 @@ def project(points_world: np.ndarray, K: np.ndarray, viewmat: np.ndarray) -> tup
     Returns:
         uv (M, 2) continuous pixel coordinates, z (M,) camera z-depth.
     """
-    p = _np(points_world).reshape(-1, 3)
-    vm = _np(viewmat)
+    p = float64_array(points_world).reshape(-1, 3)
+    vm = float64_array(viewmat)
     cam = p @ vm[:3, :3].T + vm[:3, 3]
     z = cam[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        uvw = cam @ _np(K).T
+        uvw = cam @ float64_array(K).T
         uv = uvw[:, :2] / uvw[:, 2:3]
     return uv, z
 
@@ -48,8 +44,8 @@ def backproject(
         points_world (M, 3) float64 (NaN where invalid), valid (M,) bool — False for non-positive /
         non-finite depth or ``uv`` outside the image.
     """
-    uv = _np(uv).reshape(-1, 2)
-    d = _np(depth)
+    uv = float64_array(uv).reshape(-1, 2)
+    d = float64_array(depth)
     if d.ndim == 3:
         d = d[..., 0]
     h, w = d.shape
@@ -59,9 +55,9 @@ def backproject(
     z = np.zeros(len(uv))
     z[inside] = d[row[inside].astype(np.int64), col[inside].astype(np.int64)]
     valid = inside & np.isfinite(z) & (z > 0)
-    rays = np.concatenate([uv, np.ones((len(uv), 1))], axis=1) @ np.linalg.inv(_np(K)).T  # z = 1
+    rays = np.concatenate([uv, np.ones((len(uv), 1))], axis=1) @ np.linalg.inv(float64_array(K)).T  # z = 1
     cam = rays * np.where(valid, z, np.nan)[:, None]
-    vm = _np(viewmat)
+    vm = float64_array(viewmat)
     rot, t = vm[:3, :3], vm[:3, 3]
     world = (cam - t) @ rot  # R^T (x - t)
     return world, valid

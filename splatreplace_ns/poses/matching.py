@@ -19,131 +19,22 @@ error.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
+from splatreplace_ns.poses.matcher_base import (
+    Features,
+    Matcher,
+    gray_as_u8,
+    inside_mask,
+    mask_as_u8,
+    mutual_nearest_neighbours,
+    no_matches,
+    to_numpy,
+)
+
 MATCHERS = ("sift", "orb", "xfeat", "xfeat-lighterglue", "onnx")
-
-
-@dataclass
-class Features:
-    """What a matcher keeps of one image.
-
-    Attributes:
-        uv: (N, 2) float64 keypoints, continuous pixel coordinates.
-        desc: (N, D) descriptors.
-        image_size: (W, H) of the image, for matchers that normalise keypoints by it (LighterGlue).
-        image: the prepared model input(s), kept by pair matchers that look at both images at once (their
-            ``uv`` is empty: keypoints only exist per pair).
-        mask: (H, W) bool mask of the image, kept by pair matchers to filter their matches; None: no mask.
-    """
-
-    uv: np.ndarray
-    desc: np.ndarray
-    image_size: Optional[tuple[int, int]] = None
-    image: Optional[Any] = None
-    mask: Optional[np.ndarray] = None
-
-
-def _to_numpy(x) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
-def _gray_u8(image) -> np.ndarray:
-    img = _to_numpy(image).astype(np.float32)
-    if img.ndim == 3 and img.shape[-1] >= 3:
-        img = img[..., 0] * 0.299 + img[..., 1] * 0.587 + img[..., 2] * 0.114
-    elif img.ndim == 3:
-        img = img[..., 0]
-    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-def _mask_u8(mask, shape) -> np.ndarray | None:
-    if mask is None:
-        return None
-    m = _to_numpy(mask)
-    if m.ndim == 3:
-        m = m[..., 0]
-    if m.shape != shape:
-        raise ValueError(f"mask shape {m.shape} does not match image shape {shape}")
-    return (m > 0.5).astype(np.uint8) * 255
-
-
-def _inside(uv: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    """(N,) bool: keypoint's pixel is inside the mask."""
-    if mask is None or len(uv) == 0:
-        return np.ones(len(uv), dtype=bool)
-    h, w = mask.shape
-    col = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, w - 1)
-    row = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, h - 1)
-    return mask[row, col] > 0
-
-
-class Matcher:
-    """Base class: ``extract`` once per image, ``match_features`` per pair; ``match`` does both.
-
-    Pair matchers (a model that takes both images) have no per-image keypoints to index: they override
-    ``match_pair`` instead of ``match_features``. ``match_pair`` and ``count_matches`` work for every matcher.
-    """
-
-    name = "base"
-
-    def extract(self, image, mask=None) -> Features:
-        """image (H, W, 3) float in [0, 1]; mask (H, W) or None → :class:`Features`."""
-        raise NotImplementedError
-
-    def match_features(self, fa: Features, fb: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """→ idx_a (M,), idx_b (M,) int64 indices into the keypoints, scores (M,) in [0, 1] (higher better)."""
-        raise NotImplementedError
-
-    def match(self, image_a, image_b, mask_a=None, mask_b=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Match two images.
-
-        Args:
-            image_a, image_b: (H, W, 3) float RGB in [0, 1]; mask_a, mask_b: (H, W) or None.
-        Returns:
-            uv_a (M, 2), uv_b (M, 2) continuous pixel coordinates, scores (M,) in [0, 1].
-        """
-        return self.match_pair(self.extract(image_a, mask_a), self.extract(image_b, mask_b))
-
-    def match_pair(self, fa: Features, fb: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Matches of two extracted images → uv_a (M, 2), uv_b (M, 2) float64, scores (M,) in [0, 1]."""
-        ia, ib, s = self.match_features(fa, fb)
-        return fa.uv[ia].reshape(-1, 2), fb.uv[ib].reshape(-1, 2), s
-
-    def count_matches(self, fa: Features, fb: Features) -> int:
-        """Number of matches of two extracted images (what :func:`rank_view_pairs` ranks by)."""
-        return int(len(self.match_pair(fa, fb)[0]))
-
-    __call__ = match
-
-
-def _empty() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
-
-
-def mutual_nearest_neighbours(desc_a: np.ndarray, desc_b: np.ndarray, min_cossim: float):
-    """Mutual nearest neighbours on cosine similarity.
-
-    Args:
-        desc_a: (N, D), desc_b: (M, D) L2-normalised descriptors.
-        min_cossim: pairs whose cosine similarity is not above this are dropped.
-    Returns:
-        idx_a (K,), idx_b (K,) int64, scores (K,) = cosine similarity clipped to [0, 1].
-    """
-    if len(desc_a) == 0 or len(desc_b) == 0:
-        return _empty()
-    sim = desc_a @ desc_b.T
-    best_b = sim.argmax(axis=1)
-    best_a = sim.argmax(axis=0)
-    ia = np.arange(len(desc_a))
-    keep = (best_a[best_b] == ia) & (sim[ia, best_b] > min_cossim)
-    return ia[keep].astype(np.int64), best_b[keep].astype(np.int64), np.clip(sim[ia[keep], best_b[keep]], 0, 1)
-
 
 class OpenCVMatcher(Matcher):
     """SIFT (+ ratio test) or ORB (+ cross-check) from OpenCV."""
@@ -163,8 +54,8 @@ class OpenCVMatcher(Matcher):
         self.ratio = ratio
 
     def extract(self, image, mask=None) -> Features:
-        gray = _gray_u8(image)
-        m = _mask_u8(mask, gray.shape)
+        gray = gray_as_u8(image)
+        m = mask_as_u8(mask, gray.shape)
         kps, desc = self._det.detectAndCompute(gray, m)
         if desc is None or len(kps) == 0:
             d = 32 if self.name == "orb" else 128
@@ -177,10 +68,10 @@ class OpenCVMatcher(Matcher):
         import cv2
 
         if len(fa.uv) == 0 or len(fb.uv) == 0:
-            return _empty()
+            return no_matches()
         if self.name == "sift":
             if len(fb.uv) < 2:
-                return _empty()
+                return no_matches()
             knn = cv2.BFMatcher(self._norm).knnMatch(fa.desc, fb.desc, k=2)
             ia, ib, sc = [], [], []
             for pair in knn:
@@ -231,11 +122,11 @@ class XFeatMatcher(Matcher):
     def extract(self, image, mask=None) -> Features:
         import torch
 
-        img = _to_numpy(image).astype(np.float32)
+        img = to_numpy(image).astype(np.float32)
         if img.ndim == 2:
             img = img[..., None]
         h, w = img.shape[:2]
-        mask_u8 = _mask_u8(mask, (h, w))
+        mask_u8 = mask_as_u8(mask, (h, w))
         if h < 32 or w < 32:
             return Features(np.zeros((0, 2)), np.zeros((0, 64), np.float32), (w, h))
         x = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))[None].to(self.device)  # (1, C, H, W)
@@ -243,7 +134,7 @@ class XFeatMatcher(Matcher):
             out = self._model.detectAndCompute(x)[0]
         uv = out["keypoints"].cpu().numpy().astype(np.float64).reshape(-1, 2) + 0.5
         desc = out["descriptors"].cpu().numpy().astype(np.float32).reshape(len(uv), 64)
-        keep = _inside(uv, mask_u8)
+        keep = inside_mask(uv, mask_u8)
         return Features(uv[keep], desc[keep], (w, h))
 
     def match_features(self, fa: Features, fb: Features):
@@ -299,7 +190,7 @@ class XFeatLighterGlueMatcher(XFeatMatcher):
         import torch
 
         if len(fa.uv) == 0 or len(fb.uv) == 0:
-            return _empty()
+            return no_matches()
         if fa.image_size is None or fb.image_size is None:
             raise ValueError("xfeat-lighterglue needs Features.image_size (features from this matcher's extract)")
 

@@ -42,13 +42,13 @@ from typing import Optional
 
 import numpy as np
 
-from splatreplace_ns.poses.matching import (
+from splatreplace_ns.poses.matcher_base import (
     Features,
     Matcher,
-    _inside,
-    _mask_u8,
-    _to_numpy,
+    inside_mask,
+    mask_as_u8,
     mutual_nearest_neighbours,
+    to_numpy,
 )
 
 EXTRACTOR_OUTPUTS = ("keypoints", "descriptors", "scores")
@@ -179,7 +179,7 @@ class OnnxMatcher(Matcher):
 
     def _prepare(self, image, spec) -> np.ndarray:
         """(H, W, 3) image → model input (1, C, h, w) float32."""
-        img = _to_numpy(image).astype(np.float32)
+        img = to_numpy(image).astype(np.float32)
         if img.ndim == 2:
             img = img[..., None]
         if img.shape[2] == 1:
@@ -225,9 +225,9 @@ class OnnxMatcher(Matcher):
 
     def extract(self, image, mask=None) -> Features:
         """Extractor: keypoints and descriptors; pair matcher: the prepared input (matching runs per pair)."""
-        img = _to_numpy(image)
+        img = to_numpy(image)
         h, w = img.shape[:2]
-        mask_u8 = _mask_u8(mask, (h, w))
+        mask_u8 = mask_as_u8(mask, (h, w))
         if self.kind == "pair":
             prepared = [self._prepare(img, spec) for spec in self._input_specs]
             return Features(np.zeros((0, 2)), np.zeros((0, 0), np.float32), (w, h), prepared,
@@ -241,7 +241,7 @@ class OnnxMatcher(Matcher):
         uv = model_to_image_uv(kpts[keep], x.shape[2:], (h, w))
         desc = desc[keep]
         desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-        inside = _inside(uv, mask_u8) & _within(uv, w, h)
+        inside = inside_mask(uv, mask_u8) & _within(uv, w, h)
         return Features(uv[inside], desc[inside].astype(np.float32), (w, h))
 
     def match_features(self, fa: Features, fb: Features):
@@ -267,7 +267,7 @@ class OnnxMatcher(Matcher):
         uv_a = model_to_image_uv(k0[keep], xa.shape[2:], (ha, wa))
         uv_b = model_to_image_uv(k1[keep], xb.shape[2:], (hb, wb))
         s = np.ones(len(uv_a)) if scores is None else np.clip(scores[keep], 0.0, 1.0)
-        inside = _inside(uv_a, fa.mask) & _inside(uv_b, fb.mask)
+        inside = inside_mask(uv_a, fa.mask) & inside_mask(uv_b, fb.mask)
         inside &= _within(uv_a, wa, ha) & _within(uv_b, wb, hb)
         return uv_a[inside], uv_b[inside], s[inside]
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Dict, Mapping
 
-from splatreplace_ns.poses.register import RegistrationConfig
+from splatreplace_ns.poses.config import RegistrationConfig
 
 PAPER_REGISTRATION: Mapping[str, object] = {
     "method": "ours",  # virtual views, fast ranking, robust matching of the top-k pairs, PnP-RANSAC (§4.2)

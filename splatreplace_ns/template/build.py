@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from splatreplace_ns.template.compose import quat_multiply, rotmat_to_quat, sh_rotation
+from splatreplace_ns.render.transform import rotmat_to_quat, transform_gaussians
 
 
 @dataclass
@@ -60,24 +60,6 @@ class InstanceTable:
     def empty(cls) -> "InstanceTable":
         z = torch.zeros(0, dtype=torch.long)
         return cls(z, z.clone(), z.clone(), torch.zeros(0, 4), torch.zeros(0, 3))
-
-
-def transform_gaussians(
-    T: Tensor, means: Tensor, quats: Tensor, sh: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Applies a rigid transform to Gaussians.
-
-    Args:
-        T: [4, 4] rigid; means [n, 3]; quats [n, 4] wxyz; sh [n, K, 3].
-    Returns:
-        means [n, 3], quats [n, 4], sh [n, K, 3] (SH rotated with the object).
-    """
-    R, t = T[:3, :3], T[:3, 3]
-    q = rotmat_to_quat(R)
-    K = sh.shape[1]
-    degree = int(round(K**0.5)) - 1
-    sh_out = torch.einsum("kl,nlc->nkc", sh_rotation(R, degree), sh) if K > 1 else sh
-    return means @ R.T + t, quat_multiply(q.expand(len(quats), 4), quats), sh_out
 
 
 def merge_union(part: Dict[str, Tensor], reference: Tensor, cells_per_radius: int = 30) -> Tensor:
@@ -209,4 +191,3 @@ def build_templates(
         kept_in_background=kept,
     )
     return out, table
-

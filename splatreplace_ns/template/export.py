@@ -44,7 +44,7 @@ def sh_basis_abs_bound(num_coeffs: int, samples: int = 20000) -> float:
     """max over view directions d of Σ_k |Y_k(d)|, the first ``num_coeffs`` real SH bases as the renderer
     evaluates them (sampled on a Fibonacci sphere, plus 5 % for the directions between samples)."""
     from splatreplace_ns.render.sh import sh_basis
-    from splatreplace_ns.template.compose import sample_directions
+    from splatreplace_ns.render.transform import sample_directions
 
     degree = int(round(num_coeffs**0.5)) - 1
     return 1.05 * float(sh_basis(degree, sample_directions(samples))[:, :num_coeffs].abs().sum(dim=1).max())

@@ -8,7 +8,7 @@ owns an instance of this; nerfstudio's viewer finds the elements on it.
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import Callable, Optional
 
 import torch
 
@@ -17,20 +17,21 @@ from nerfstudio.viewer.viewer_elements import ViewerClick
 from splatreplace_ns.instances.from_clicks import SelectionError
 from splatreplace_ns.viewer.click_controls import ClickControls
 
-if TYPE_CHECKING:
-    from splatreplace_ns.method.pipeline import SplatReplacePipeline
 
 
 class InstanceSelectionControls(ClickControls):
-    """The segmentation stage's click controls; the pipeline's selection does the work."""
+    """The segmentation stage's click controls; the pipeline's selection does the work.
 
-    def __init__(self, pipeline: "SplatReplacePipeline"):
+    ``pipeline``: the ``SplatReplacePipeline`` that owns these controls (not imported here: the viewer sits below
+    the method)."""
+
+    def __init__(self, pipeline):
         super().__init__("Instance selection", "Select instances", "Undo last instance", "Confirm instances",
                          "Instances", "Selection status", "waits for the segmentation stage")
         self._pipeline = [pipeline]  # a list keeps the pipeline out of this module's children
 
     @property
-    def _owner(self) -> "SplatReplacePipeline":
+    def _owner(self):
         # private on purpose: nerfstudio's viewer walks every public attribute of the pipeline's modules for
         # its GUI elements, and a public way back to the pipeline sends that walk round in a circle
         return self._pipeline[0]

@@ -76,7 +76,7 @@ class BenchMaskPassesConfig:
 def _scene_run(cfg: BenchMaskPassesConfig, seed: int, name: str, base_config: Optional[Path]) -> Dict:
     """One variant on one scene: mIoU, per-instance IoU, clustering time, and the base model's config."""
     from splatreplace_ns.tools.bench.masks import BenchMasksConfig, run_masks_bench, scene_of
-    from splatreplace_ns.instances.geometric import ClusteringConfig
+    from splatreplace_ns.instances.geometric_config import ClusteringConfig
     from splatreplace_ns.instances.projection import ClickError
 
     masks_cfg = BenchMasksConfig(

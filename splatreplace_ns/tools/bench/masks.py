@@ -28,10 +28,10 @@ import numpy as np
 import torch
 
 from splatreplace_ns.eval.segmentation import ground_truth_masks_by_name, score_views_from_clicks, segmentation_scores
-from splatreplace_ns.method.masks_base import BaseFrames
+from splatreplace_ns.method.masks_command import BaseFrames
 from splatreplace_ns.datamanager.click_masks import MASKS_DIR, read_dataset_meta
 from splatreplace_ns.tools.sim.capture import strip_ground_truth
-from splatreplace_ns.instances.geometric import ClusteringConfig
+from splatreplace_ns.instances.geometric_config import ClusteringConfig
 from splatreplace_ns.tools.bench.output import write_result_json
 
 NO_MASKED = "a downstream run reported no masked PSNR (no test view shows an instance)"
@@ -162,17 +162,18 @@ def oracle_masks(base_config: Path, capture: Path, scene: Path, depth_tolerance:
     allow, whatever the clustering and the split.
 
     A Gaussian's label is the majority of the scene's ground-truth masks at its centre over the frames that
-    see it (:func:`~splatreplace_ns.instances.gt_labels.labels_from_masks`, visibility by the rendered depth);
+    see it (:func:`~splatreplace_ns.tools.bench.gt_labels.labels_from_masks`, visibility by the rendered depth);
     the instance of click k (id k + 1, as in the written masks) is the Gaussians labelled with that click's
     ground-truth id, rendered exactly as the geometric backend renders its instances (no border cleanup).
 
     Returns:
         [F, H, W] uint16 masks and the frames' file paths, in the capture's frame order.
     """
-    from splatreplace_ns.method.masks_base import frame_cameras, load_base
+    from splatreplace_ns.instances.frames import frame_cameras
+    from splatreplace_ns.method.masks_command import load_base
     from splatreplace_ns.instances.masks2d import BorderConfig, render_instance_masks
-    from splatreplace_ns.method.masks_viewer import render_frames
-    from splatreplace_ns.instances.gt_labels import labels_from_masks
+    from splatreplace_ns.instances.frames import render_frames
+    from splatreplace_ns.tools.bench.gt_labels import labels_from_masks
 
     transforms = capture / "transforms.json"
     base = load_base(base_config, transforms)

@@ -13,7 +13,8 @@ from typing import Dict, Mapping
 
 import numpy as np
 
-from splatreplace_ns.poses.register import RegistrationResult, choose_templates
+from splatreplace_ns.poses.instance import RegistrationResult
+from splatreplace_ns.poses.register import choose_templates
 
 
 def ground_truth_transform(template_pose: np.ndarray, source_pose: np.ndarray) -> np.ndarray:
@@ -82,7 +83,7 @@ def use_ground_truth(pipeline, instances_too: bool, depth_tolerance: float = 0.0
         instances_too: also set ``model.instance_labels`` / ``model.instances`` from the ground-truth masks.
         depth_tolerance: relative depth margin of the labelling's visibility test (as ``bench register``).
     """
-    from splatreplace_ns.tools.bench.register import label_gaussians_from_ground_truth
+    from splatreplace_ns.tools.bench.gt_labels import label_gaussians_from_ground_truth
 
     model, datamanager = pipeline.model, pipeline.datamanager
     if model.stage != "segmented":
@@ -105,7 +106,7 @@ def use_ground_truth(pipeline, instances_too: bool, depth_tolerance: float = 0.0
              "source": "ground truth"}
             for i in meta if int(i["id"]) in present
         ]
-    # an attribute of this datamanager only: the stage calls it as datamanager.register_instances(...)
-    datamanager.register_instances = lambda instances, classes, config: ground_truth_registration(
+    # an attribute of this pipeline only: the stage calls it as self.register_instances(...)
+    pipeline.register_instances = lambda instances, classes, config: ground_truth_registration(
         instances, classes, poses
     )

@@ -3,7 +3,7 @@
 One base 3DGS* run per preset (``ns-train splat-replace`` in process, contrastive stage off; reused from
 ``benchmarks/runs`` when it exists). The Gaussians are labelled with the ground-truth instance masks of the
 training views (majority vote of the mask id under each visible centre, visibility from the model's own
-rendered depth; :func:`splatreplace_ns.instances.gt_labels.labels_from_masks`), so registration is measured
+rendered depth; :func:`splatreplace_ns.tools.bench.gt_labels.labels_from_masks`), so registration is measured
 alone. Every instance is then registered onto its class template with
 :func:`splatreplace_ns.poses.register_instances`, once per row:
 
@@ -57,9 +57,11 @@ import numpy as np
 import torch
 
 from splatreplace_ns.poses.errors import rotation_error_deg, translation_error_rel
-from splatreplace_ns.poses.register import InstanceGaussians, RegistrationConfig, register_instances, with_floor_up_axis
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.instance import InstanceGaussians
+from splatreplace_ns.poses.register import register_instances, with_floor_up_axis
 from splatreplace_ns.poses.variants import REGISTRATION_VARIANTS, registration_variant
-from splatreplace_ns.instances.gt_labels import labels_from_masks
+from splatreplace_ns.tools.bench.gt_labels import label_gaussians_from_ground_truth, training_views
 from splatreplace_ns.tools.bench.output import write_result_json
 
 DEFAULT_ROWS: Tuple[str, ...] = (
@@ -332,37 +334,6 @@ def ground_truth_instances(pipeline) -> Dict[int, GroundTruthInstance]:
     return out
 
 
-def training_views(pipeline) -> Tuple[torch.Tensor, torch.Tensor, int, int]:
-    """World→camera (OpenCV) matrices [V, 4, 4], intrinsics [V, 3, 3] and (W, H) of the training cameras."""
-    from splatreplace_ns.render.cameras import world_to_camera
-
-    cameras = pipeline.datamanager.train_dataset.cameras
-    viewmats = world_to_camera(cameras.camera_to_worlds.float()).detach().cpu()
-    Ks = cameras.get_intrinsics_matrices().float().cpu()
-    return viewmats, Ks, int(cameras.width[0]), int(cameras.height[0])
-
-
-@torch.no_grad()
-def label_gaussians_from_ground_truth(pipeline, depth_tolerance: float) -> torch.Tensor:
-    """[N] instance of each Gaussian from the training views' ground-truth masks (visibility: rendered depth)."""
-    model = pipeline.model
-    dataset = pipeline.datamanager.train_dataset
-    viewmats, Ks, width, height = training_views(pipeline)
-    ones = torch.ones(model.num_points, 1, device=model.means.device)
-    masks, depths = [], []
-    for idx in range(len(dataset)):
-        try:
-            masks.append(pipeline.datamanager.train_instance_mask(idx).long())
-        except ValueError as err:
-            raise ValueError(f"{err}; the bench needs ground-truth masks") from None
-        _, alpha, depth = model.render_features(dataset.cameras[idx : idx + 1], features=ones)
-        depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])).cpu())
-    return labels_from_masks(
-        model.means.detach().cpu(), viewmats, Ks, width, height, torch.stack(masks), torch.stack(depths),
-        depth_tolerance,
-    )
-
-
 def instance_gaussians(
     model, labels: torch.Tensor, ids, sh_degree: Optional[int]
 ) -> Dict[int, InstanceGaussians]:
@@ -595,7 +566,7 @@ def register_from_truth(
     chosen as the stage chooses them), each source then refined as ``ours`` refines its chosen candidate
     (:func:`splatreplace_ns.poses.register.refine_from`). → {instance id: RegistrationResult}."""
     from splatreplace_ns.tools.bench.oracle import ground_truth_registration
-    from splatreplace_ns.poses.register import refine_from
+    from splatreplace_ns.poses.refine import refine_from
 
     poses = {iid: rigid_part(ground_truth[g].pose)[0] for iid, g in gt_of.items() if g is not None and iid in instances}
     out = ground_truth_registration(instances, classes, poses)

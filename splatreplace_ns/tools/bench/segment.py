@@ -158,7 +158,7 @@ def leftover_total(near_each: Dict[int, torch.Tensor], n_background: int) -> int
 
 
 def _train(cfg: BenchSegmentConfig, data: Path, name: str, regularise: bool, carve: bool, contrastive: int, probes: Dict[int, str]):
-    from splatreplace_ns.tools.bench.register import label_gaussians_from_ground_truth
+    from splatreplace_ns.tools.bench.gt_labels import label_gaussians_from_ground_truth
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
 
     config = make_trainer_config(data, cfg.out_dir / cfg.preset, cfg.base_iterations, contrastive, experiment_name=name)

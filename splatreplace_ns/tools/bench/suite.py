@@ -232,6 +232,7 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     """Generate (or reuse) one scene, train ours and the baseline, and score both."""
     from splatreplace_ns.tools.bench.template import test_metrics, train_ours_and_baseline
     from splatreplace_ns.eval.report import registration_report, segmentation_report
+    from splatreplace_ns.tools.sim.scene import class_size
 
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     start = time.perf_counter()
@@ -255,7 +256,7 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
                                        parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg),
                                        seed=cfg.training_seed)
     pipeline = pair["ours_trainer"].pipeline
-    registration, _ = registration_report(pipeline)
+    registration, _ = registration_report(pipeline, class_size)
     times = pair["times"]
     stages = pair.get("stages") or clock.stages(times["ours"], times.get("segmentation", 0.0),
                                                 times.get("registration", 0.0))

@@ -15,7 +15,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from splatreplace_ns.tools.sim.cameras import PathSpec
-from splatreplace_ns.tools.sim.geometry import box, pose
+from splatreplace_ns.tools.sim.primitives import box, pose
 from splatreplace_ns.tools.sim.scene import Instance, Light, Scene, Surface
 
 

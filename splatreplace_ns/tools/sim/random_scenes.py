@@ -22,7 +22,8 @@ from typing import Optional
 import numpy as np
 
 from splatreplace_ns.tools.sim.cameras import PathSpec, PinholeCamera, intrinsics, pixel_rays, trajectory
-from splatreplace_ns.tools.sim.geometry import CLASS_SYMMETRY, box, class_mesh, pose
+from splatreplace_ns.tools.sim.geometry import CLASS_SYMMETRY, class_mesh
+from splatreplace_ns.tools.sim.primitives import box, pose
 from splatreplace_ns.tools.sim.presets import Effects, Layout, Preset
 from splatreplace_ns.tools.sim.render import Renderer
 from splatreplace_ns.tools.sim.scene import Instance, Light, Scene, Surface

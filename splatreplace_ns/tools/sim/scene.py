@@ -13,7 +13,7 @@ from typing import Literal, Optional
 import numpy as np
 import open3d as o3d
 
-from splatreplace_ns.tools.sim.geometry import CLASS_SYMMETRY, class_mesh
+from splatreplace_ns.tools.sim.geometry import CLASS_SYMMETRY, CLASSES, class_mesh
 
 
 @dataclass(frozen=True)
@@ -76,11 +76,21 @@ class Scene:
 
 
 def instances_json(instances: list[Instance]) -> list[dict]:
-    """The ``instances`` list of transforms.json: id, class, object→world matrix, symmetry."""
+    """The ``instances`` list of transforms.json: id, class, object→world matrix, symmetry, and size (the bounding-box
+    diagonal of the class's mesh in the object's frame, before the pose's scale)."""
     return [
-        {"id": int(i.id), "class": i.cls, "transform_matrix": np.asarray(i.pose).tolist(), "symmetry": i.symmetry}
+        {"id": int(i.id), "class": i.cls, "transform_matrix": np.asarray(i.pose).tolist(), "symmetry": i.symmetry,
+         "size": class_size(i.cls)}
         for i in instances
     ]
+
+
+def class_size(cls: str) -> Optional[float]:
+    """Bounding-box diagonal of a class's mesh in its object frame; None for a class the simulator does not know."""
+    if cls not in CLASSES:
+        return None
+    mesh = class_mesh(cls)
+    return float(np.linalg.norm(mesh.get_max_bound() - mesh.get_min_bound()))
 
 
 def load_scene_meshes(transforms_json: str | Path) -> dict[int, o3d.geometry.TriangleMesh]:

@@ -8,7 +8,7 @@ without the segmentation stage in the way.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 
@@ -87,3 +87,34 @@ def labels_from_masks(
         votes.index_put_((torch.nonzero(seen).squeeze(-1), ids[seen]), ones[seen], accumulate=True)
     # argmax returns the first maximum: the smaller id wins ties; rows without votes give 0
     return votes.argmax(dim=-1).to(torch.long)
+
+
+def training_views(pipeline) -> Tuple[torch.Tensor, torch.Tensor, int, int]:
+    """World→camera (OpenCV) matrices [V, 4, 4], intrinsics [V, 3, 3] and (W, H) of the training cameras."""
+    from splatreplace_ns.render.cameras import world_to_camera
+
+    cameras = pipeline.datamanager.train_dataset.cameras
+    viewmats = world_to_camera(cameras.camera_to_worlds.float()).detach().cpu()
+    Ks = cameras.get_intrinsics_matrices().float().cpu()
+    return viewmats, Ks, int(cameras.width[0]), int(cameras.height[0])
+
+
+@torch.no_grad()
+def label_gaussians_from_ground_truth(pipeline, depth_tolerance: float) -> torch.Tensor:
+    """[N] instance of each Gaussian from the training views' ground-truth masks (visibility: rendered depth)."""
+    model = pipeline.model
+    dataset = pipeline.datamanager.train_dataset
+    viewmats, Ks, width, height = training_views(pipeline)
+    ones = torch.ones(model.num_points, 1, device=model.means.device)
+    masks, depths = [], []
+    for idx in range(len(dataset)):
+        try:
+            masks.append(pipeline.datamanager.train_instance_mask(idx).long())
+        except ValueError as err:
+            raise ValueError(f"{err}; the bench needs ground-truth masks") from None
+        _, alpha, depth = model.render_features(dataset.cameras[idx : idx + 1], features=ones)
+        depths.append(torch.where(alpha[..., 0] > 0, depth[..., 0], torch.zeros_like(depth[..., 0])).cpu())
+    return labels_from_masks(
+        model.means.detach().cpu(), viewmats, Ks, width, height, torch.stack(masks), torch.stack(depths),
+        depth_tolerance,
+    )

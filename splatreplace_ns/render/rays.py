@@ -9,7 +9,7 @@ import torch
 
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from splatreplace_ns.poses.virtual_cameras import OPENCV_TO_OPENGL, look_at
+from splatreplace_ns.render.cameras import OPENCV_TO_OPENGL, look_at
 
 
 def ray_camera(origin: Sequence[float], direction: Sequence[float], focal: float, size: int = 33) -> Cameras:
