@@ -28,8 +28,9 @@ import torch
 import tyro
 
 from splatreplace_ns.tools.bench.output import write_result_json
-from splatreplace_ns.tools.bench.register import load_pipeline
-from splatreplace_ns.tools.bench.suite import DEV_SEEDS, WRONG_POSE_DEG
+from splatreplace_ns.tools.bench.register_scene import load_pipeline
+from splatreplace_ns.tools.bench.suite import DEV_SEEDS
+from splatreplace_ns.tools.bench.suite_output import WRONG_POSE_DEG
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.refine import choose_candidate
 

@@ -19,7 +19,7 @@ from typing import Dict, List, Tuple
 import torch
 import tyro
 
-from splatreplace_ns.tools.bench.register import load_pipeline
+from splatreplace_ns.tools.bench.register_scene import load_pipeline
 from splatreplace_ns.template.revert import RevertGateConfig, score_replaced_instances
 
 SEGMENTATION_STEP = 1999  # end of the contrastive stage with the quick budget (1500 + 500)

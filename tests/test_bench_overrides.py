@@ -70,7 +70,8 @@ def test_each_variant_changes_only_what_it_names():
 
 
 def test_bench_register_rows_are_the_variants():
-    from splatreplace_ns.tools.bench.register import BenchRegisterConfig, row_configs
+    from splatreplace_ns.tools.bench.register import BenchRegisterConfig
+    from splatreplace_ns.tools.bench.register_rows import row_configs
 
     cfg = BenchRegisterConfig()
     rows = dict(row_configs(cfg, ("ours", "paper", "no_virtual_views")))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.tools.bench.register import (
-    BenchRegisterConfig,
+from splatreplace_ns.tools.bench.register import BenchRegisterConfig
+from splatreplace_ns.tools.bench.register_scene import (
     load_bench_scene,
     match_segments_to_ground_truth,
     pose_errors,
@@ -318,17 +318,18 @@ def test_segmentation_rows_on_a_relabelled_run(tiny_bench, tmp_path):
 
 def test_overhead_light_gets_its_own_scene(tmp_path):
     """--light overhead registers on the same scene lit from the zenith, cached (and so trained) apart."""
-    from splatreplace_ns.tools.bench.register import _scene
+    from splatreplace_ns.tools.bench.register_scene import scene_folder
 
     cfg = BenchRegisterConfig(preset="tiny", res="32x24", n_train=2, n_test=1, data_root=tmp_path)
-    lit = {light: _scene(replace(cfg, light=light)) for light in ("preset", "overhead")}
+    lit = {light: scene_folder(replace(cfg, light=light)) for light in ("preset", "overhead")}
     assert lit["preset"] != lit["overhead"]
     for light, path in lit.items():
         assert json.loads((path / "transforms.json").read_text())["sim"]["light"] == light
 
 
 def test_row_settings_differ_only_where_the_row_says():
-    from splatreplace_ns.tools.bench.register import BenchRegisterConfig, row_configs
+    from splatreplace_ns.tools.bench.register import BenchRegisterConfig
+    from splatreplace_ns.tools.bench.register_rows import row_configs
 
     rows = dict(row_configs(BenchRegisterConfig(), ("ours", "no_upright", "no_multistart", "no_icp", "fpfh")))
     ours = rows["ours"]
@@ -345,7 +346,7 @@ def test_row_settings_differ_only_where_the_row_says():
 
 
 def test_load_pipeline_names_the_missing_checkpoint_step(tmp_path):
-    from splatreplace_ns.tools.bench.register import load_pipeline
+    from splatreplace_ns.tools.bench.register_scene import load_pipeline
 
     models = tmp_path / "nerfstudio_models"
     models.mkdir()

@@ -8,14 +8,14 @@ import pytest
 
 from splatreplace_ns.tools.bench import suite
 from splatreplace_ns.tools.bench.suite import (
+    BenchSuiteConfig,
     DEV_SEEDS,
     REPORT_SEEDS,
-    BenchSuiteConfig,
     StageClock,
     split_seeds,
     summarise,
-    write_gain_plot,
 )
+from splatreplace_ns.tools.bench.suite_output import write_gain_plot
 
 
 def test_splits_are_disjoint_and_fixed():

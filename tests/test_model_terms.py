@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from splatreplace_ns.method.model import apply_exposure, base_regularisers, inverse_depth_l1, nearest_downscale
+from splatreplace_ns.method.losses import apply_exposure, base_regularisers, inverse_depth_l1, nearest_downscale
 
 
 def test_base_regularisers_are_means_of_activated_values():

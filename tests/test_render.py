@@ -32,6 +32,7 @@ from splatreplace_ns.render import (
     spherical_harmonics,
 )
 from splatreplace_ns.render.rasterize import BACKEND_ENV_VAR, resolve_backend
+from splatreplace_ns.render.workspace import release_workspace
 
 gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
 
@@ -481,7 +482,7 @@ def test_inference_mode_and_workspace_release():
         out = rasterize(*leaves, s["viewmat"], s["K"], W, H)
     assert out.extras["n_pairs_backward"] == 0 and ref.extras["n_pairs_backward"] > 0
     torch.testing.assert_close(out.image, ref.image.detach())
-    raster_torch.release_workspace()
+    release_workspace()
     again = rasterize(*(s[k] for k in PARAMS), s["viewmat"], s["K"], W, H)
     torch.testing.assert_close(again.image, ref.image.detach())
 

@@ -16,9 +16,6 @@ from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 from gsplat.strategy import DefaultStrategy
-from pytorch_msssim import SSIM
-from torch.nn import Parameter
-
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.splatfacto import (
     RGB2SH,
@@ -29,64 +26,20 @@ from nerfstudio.models.splatfacto import (
 )
 from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
+from pytorch_msssim import SSIM
+from torch.nn import Parameter
 
-from splatreplace_ns.eval.metrics import psnr as image_psnr
-from splatreplace_ns.eval.metrics import ssim as image_ssim
+from splatreplace_ns.eval.metrics import psnr as image_psnr, ssim as image_ssim
 from splatreplace_ns.eval.perceptual import LocalLPIPS
 from splatreplace_ns.method.checkpoint_compat import allow_numpy_scalars_in_checkpoints
+from splatreplace_ns.method.losses import apply_exposure, base_regularisers, inverse_depth_l1, nearest_downscale
+from splatreplace_ns.method.model_templates import ReplacedScene
 from splatreplace_ns.method.sky import pixel_directions, sky_colour, sky_opacity_l1
 from splatreplace_ns.render import rasterize, resolve_backend, world_to_camera
-from splatreplace_ns.render.sh import sh_to_color
 from splatreplace_ns.template.build import InstanceTable
-from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses, offsets_l1
+from splatreplace_ns.template.compose import instance_poses, offsets_l1
 
 allow_numpy_scalars_in_checkpoints()
-
-
-def base_regularisers(opacities: torch.Tensor, scales: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """L1 terms of paper Eq. 1 on the activated parameters.
-
-    Args:
-        opacities: [N, 1] opacity logits.
-        scales: [N, 3] log-scales.
-
-    Returns:
-        (mean sigmoid opacity, mean exp scale), two scalars.
-    """
-    return torch.sigmoid(opacities).mean(), torch.exp(scales).mean()
-
-
-def apply_exposure(rgb: torch.Tensor, affine: torch.Tensor) -> torch.Tensor:
-    """Per-image affine colour correction ``rgb' = A[:, :3] rgb + A[:, 3]``.
-
-    Args:
-        rgb: [H, W, 3] rendered colour.
-        affine: [3, 4] exposure matrix (identity = no change).
-    """
-    return rgb @ affine[:, :3].T + affine[:, 3]
-
-
-def inverse_depth_l1(pred: torch.Tensor, target: torch.Tensor, min_depth: float = 1e-3) -> torch.Tensor:
-    """Mean L1 between inverse depths where the target is valid (> 0).
-
-    Args:
-        pred: [H, W, 1] expected depth.
-        target: [H, W, 1] ground-truth z-depth, 0 where unknown, +inf where there is no surface (the sky:
-            inverse depth 0, which keeps 3DGS from hanging the sky as a wall just behind the scene).
-    """
-    valid = target > min_depth
-    if not bool(valid.any()):
-        return pred.sum() * 0.0
-    inv_pred = 1.0 / pred.clamp_min(min_depth)
-    inv_target = 1.0 / target.clamp_min(min_depth)
-    return (inv_pred - inv_target).abs()[valid].mean()
-
-
-def nearest_downscale(image: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
-    """Nearest-neighbour downscale of an [H, W, C] map (keeps invalid depth as 0, unlike averaging)."""
-    if factor == 1:
-        return image
-    return image[factor // 2 :: factor, factor // 2 :: factor][:height, :width]
 
 
 @dataclass
@@ -141,7 +94,7 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     once per instance: on CPU several times slower per step)."""
 
 
-class SplatReplaceModel(SplatfactoModel):
+class SplatReplaceModel(ReplacedScene, SplatfactoModel):
     """splatfacto with a device-agnostic renderer and the 3DGS* base-stage losses."""
 
     config: SplatReplaceModelConfig
@@ -363,153 +316,6 @@ class SplatReplaceModel(SplatfactoModel):
         self.step = 30000
         torch.nn.Module.load_state_dict(self, state_dict, **kwargs)
 
-    # ------------------------------------------------------------------ shared templates
-    @property
-    def has_templates(self) -> bool:
-        return self.stage == "finetune" and len(self.instance_table.ids) > 0
-
-    def composed_scene(self) -> ComposedScene:
-        """The replaced scene: background + every instance's posed copy of its template (world frame)."""
-        table = self.instance_table
-        delta = self.instance_pose_delta
-        q, R, t = instance_poses(table.q0.to(delta), table.t0.to(delta), delta)
-        sh = torch.cat((self.features_dc[:, None, :], self.features_rest), dim=1)
-        device = self.means.device
-        return compose_scene(
-            self.means, self.quats, self.scales, self.opacities, sh, self.gauss_params["sh_offsets"],
-            self.gauss_params["template_class"].detach()[:, 0].round().long(),
-            table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
-            lam=self.config.template_mix,
-            colour_gain=self.instance_colour_gain if self.config.copy_colour_gain else None,
-        )
-
-    @torch.no_grad()
-    def bake_replaced_scene(self) -> None:
-        """Stores the composed scene as plain Gaussians (world frame, SH rotated and mixed per instance).
-
-        Renders stay the same; afterwards every tool that reads splatfacto's attributes (``ns-export
-        gaussian-splat``, ``ns-render``) sees the replaced scene. Used for inference-only loading.
-        """
-        if not self.has_templates:
-            return
-        scene = self.composed_scene()
-        baked = {
-            "means": scene.means, "quats": scene.quats, "scales": scene.log_scales,
-            "opacities": scene.logit_opacities.reshape(-1, 1), "features_dc": scene.sh[:, 0],
-            "features_rest": scene.sh[:, 1:],
-        }
-        for name, param in list(self.gauss_params.items()):
-            if name in baked:
-                value = baked[name]
-            elif name == "sh_offsets":
-                value = param.new_zeros((len(scene.means), 0) + tuple(param.shape[2:]))
-            elif name == "template_class":
-                value = param.new_zeros(len(scene.means), 1)
-            else:
-                value = param[scene.param_index]
-            self.gauss_params[name] = Parameter(value.detach().clone())
-        self.instance_labels = scene.instance_id.cpu()
-        self.instance_table = InstanceTable.empty()
-        self.instance_pose_delta = Parameter(self.instance_pose_delta.new_zeros(0, 6))
-        self.instance_colour_gain = Parameter(self.instance_colour_gain.new_zeros(0, 3))
-        self.stage = "replaced"
-
-    def _finetune_densify(self, step: int) -> None:
-        """Densification on the stored Gaussians with the screen-space statistics of the rendered ones (a template
-        Gaussian's summed over the instances that render it; none at all with ``finetune_densify=background``)."""
-        info = self.info
-        means2d = info.get("means2d")
-        if means2d is None or means2d.grad is None:
-            return
-        radii = info["radii"].reshape(-1)
-        param_index = info.get("param_index")
-        if param_index is None:  # the scene is not replaced: rendered Gaussian i is stored Gaussian i
-            param_index = torch.arange(len(radii), device=radii.device)
-        counted = radii > 0
-        if self.config.finetune_densify == "background":
-            counted &= self.gauss_params["template_class"].detach()[param_index, 0] == 0
-        grad = means2d.grad.reshape(-1, 2)[counted].clone()
-        packed = grad.detach().clone().requires_grad_(True)
-        packed.grad = grad
-        packed_info = {
-            "means2d": packed, "radii": radii[counted].float(), "gaussian_ids": param_index[counted],
-            "width": info["width"], "height": info["height"], "n_cameras": 1,
-        }
-        params, optimizers = self.gauss_params, self.optimizers
-        if self.stage == "segmented":  # the instance labels follow their Gaussians through splits and prunes
-            labels = Parameter(self.instance_labels.to(radii.device, torch.float32)[:, None], requires_grad=False)
-            params, optimizers = dict(params), dict(optimizers)
-            params["instance_labels"] = labels
-            optimizers["instance_labels"] = torch.optim.SGD([labels], lr=0.0)  # gsplat edits one optimizer per key
-        self.finetune_strategy.step_post_backward(
-            params=params, optimizers=optimizers, state=self.finetune_strategy_state,
-            # counted from 1: gsplat resets every opacity whenever step % reset_every == 0, step 0 included
-            step=step - int(self.finetune_start or 0) + 1, info=packed_info, packed=True,
-        )
-        if params is not self.gauss_params:
-            self.instance_labels = params.pop("instance_labels")[:, 0].round().long().cpu()
-            for name, value in params.items():
-                self.gauss_params[name] = value
-
-    def render_features(self, camera: Cameras, features: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Renders per-Gaussian features at full resolution with the geometry detached.
-
-        Args:
-            camera: one camera.
-            features: [N, D] features to splat (default: the contrastive features).
-
-        Returns:
-            features [H, W, D], alpha [H, W, 1], depth [H, W, 1].
-        """
-        features = self.features_contrastive if features is None else features
-        viewmat = world_to_camera(camera.camera_to_worlds.to(self.device))[0]
-        K = camera.get_intrinsics_matrices()[0].to(self.device)
-        means, quats, scales, opacities = self.means, self.quats, self.scales, self.opacities
-        if self.has_templates:  # the replaced scene; each rendered Gaussian carries its stored one's feature
-            scene = self.composed_scene()
-            means, quats, scales, opacities = scene.means, scene.quats, scene.log_scales, scene.logit_opacities
-            features = features[scene.param_index]
-        out = rasterize(
-            means.detach(),
-            quats.detach(),
-            torch.exp(scales.detach()),
-            torch.sigmoid(opacities.detach()).reshape(-1),
-            features,
-            viewmat,
-            K,
-            int(camera.width.item()),
-            int(camera.height.item()),
-            backend="gsplat" if self.uses_gsplat else "torch",
-        )
-        return out.image, out.alpha, out.depth
-
-    @torch.no_grad()
-    def render_instance_ids(self, camera: Cameras, min_alpha: float = 0.5) -> torch.Tensor:
-        """Instance id per pixel (0 = background) of one camera: the segmentation labels rendered as one-hot
-        features (after the templates are built, the instance each composed Gaussian belongs to).
-
-        Returns:
-            [H, W] long.
-        """
-        scene = self.composed_scene() if self.has_templates else None
-        labels = scene.instance_id if scene is not None else self.instance_labels.to(self.device)
-        ids = sorted(set(labels.unique().tolist()) - {0})
-        dense = torch.searchsorted(torch.tensor([0] + ids, device=labels.device), labels)  # 0..len(ids)
-        one_hot = torch.nn.functional.one_hot(dense, len(ids) + 1).float()
-        if scene is None:
-            image, alpha, _ = self.render_features(camera, one_hot)
-        else:
-            viewmat = world_to_camera(camera.camera_to_worlds.to(self.device))[0]
-            K = camera.get_intrinsics_matrices()[0].to(self.device)
-            out = rasterize(scene.means, scene.quats, torch.exp(scene.log_scales),
-                            torch.sigmoid(scene.logit_opacities).reshape(-1), one_hot, viewmat, K,
-                            int(camera.width.item()), int(camera.height.item()),
-                            backend="gsplat" if self.uses_gsplat else "torch")
-            image, alpha = out.image, out.alpha
-        table = torch.tensor([0] + ids, dtype=torch.long, device=image.device)
-        winner = table[image.argmax(dim=-1)]
-        return torch.where(alpha[..., 0] >= min_alpha, winner, torch.zeros_like(winner))
-
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_param_groups()
         if self.config.use_exposure_correction:
@@ -617,47 +423,6 @@ class SplatReplaceModel(SplatfactoModel):
         if self.uses_sky:
             return sky_colour(self.sky_coefficients, pixel_directions(camera_to_world.to(self.device), K, width, height))
         return self._get_background_color()
-
-    @torch.no_grad()
-    def render_gaussian_set(self, camera: Cameras, gaussians: Dict[str, torch.Tensor],
-                            extra: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Renders a given set of Gaussians as this model renders its own (its SH degree and background).
-
-        Args:
-            camera: one camera.
-            gaussians: means [N, 3], quats [N, 4], log_scales [N, 3], logit_opacities [N] or [N, 1], sh [N, K, 3].
-            extra: [N, D] features rendered alongside (alpha-weighted, no background).
-        Returns:
-            rgb [H, W, 3] in [0, 1], extra [H, W, D].
-        """
-        camera_to_world = camera.camera_to_worlds.to(self.device).reshape(-1, 3, 4)
-        viewmat = world_to_camera(camera_to_world)[0]
-        K = camera.get_intrinsics_matrices().reshape(-1, 3, 3)[0].to(self.device)
-        W, H = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
-        means, sh = gaussians["means"], gaussians["sh"]
-        if self.config.sh_degree > 0:
-            degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)  # as get_outputs
-            colors = sh_to_color(degree, means - camera_to_world[0, :3, 3], sh)
-        else:
-            colors = torch.sigmoid(sh[:, 0])
-        out = rasterize(
-            means, gaussians["quats"], torch.exp(gaussians["log_scales"]),
-            torch.sigmoid(gaussians["logit_opacities"]).reshape(-1), torch.cat((colors, extra.to(colors)), dim=-1),
-            viewmat, K, W, H, near=0.01, far=1e10, backend="gsplat" if self.uses_gsplat else "torch",
-        )
-        rgb = out.image[..., :3] + (1 - out.alpha) * self._background(camera_to_world[0], K, W, H)
-        return rgb.clamp(0.0, 1.0), out.image[..., 3:]
-
-    @staticmethod
-    def _tint(colors: torch.Tensor, selected: torch.Tensor, is_sh: bool) -> torch.Tensor:
-        """Blends the selected Gaussians' base colour toward red (viewer highlight)."""
-        red = torch.tensor([1.0, 0.15, 0.15], device=colors.device)
-        colors = colors.clone()
-        if is_sh:
-            colors[selected, 0] = 0.4 * colors[selected, 0] + 0.6 * RGB2SH(red)
-        else:
-            colors[selected] = 0.4 * colors[selected] + 0.6 * red
-        return colors
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)

@@ -42,19 +42,28 @@ gradients w.r.t. the 2D means and conics are reduced to per-entry moments of
 
 On CPU, the large per-pair temporaries live in a reusable per-thread
 workspace (page faults on freshly allocated memory otherwise cost about a
-third of the run time); :func:`release_workspace` frees it.
+third of the run time; ``render.workspace``); :func:`~splatreplace_ns.render.workspace.release_workspace` frees it.
 """
 
 from __future__ import annotations
 
 import math
-import threading
-import warnings
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import List, Optional, Tuple
 
 import torch
 from torch import Tensor
+
+from splatreplace_ns.render.footprints import (
+    Footprints,
+    SEG,
+    csr_matmul,
+    entry_segments,
+    footprint_rows,
+    footprints,
+    segmented_cumsum_,
+)
+from splatreplace_ns.render.workspace import workspace_for
 
 __all__ = [
     "ALPHA_MAX",
@@ -63,7 +72,6 @@ __all__ = [
     "SEG",
     "RasterStats",
     "rasterize_projected",
-    "release_workspace",
 ]
 
 # gsplat's constants (see its rasterize_to_pixels kernels)
@@ -72,11 +80,6 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 LOG_T_MIN = math.log(T_MIN)
 
-# width of a pixel segment
-SEG = 8
-# margin (pixels) added to the analytic ellipse extents; pixels inside the
-# margin but outside the ellipse are rejected by the exact alpha test
-_EXTENT_MARGIN = 1e-2
 # a depth slice aims at about this many entries per still-active segment
 _SLICE_ENTRIES_PER_SEGMENT = 32
 _MIN_SLICE_ENTRIES = 4096
@@ -94,141 +97,6 @@ class RasterStats:
     n_slices: int = 0
 
 
-@dataclass
-class _Footprints:
-    """Per visible Gaussian (front to back): the ``alpha >= 1/255`` ellipse
-    ``{d : d^T Sigma^-1 d <= 2 tau}``, ``tau = log(255 o)``, and the image rows
-    it touches (float64, detached)."""
-
-    params: Tensor  # [6, Nv]: mx, my, 2 tau (0: reaches no pixel), 1/Syy,
-    #                 Sxy/Syy, det/Syy (variance of x given y)
-    y_lo: Tensor  # [Nv] int64 first row
-    nrows: Tensor  # [Nv] int64 number of rows (0: no pixel)
-    cum_est: Tensor  # [Nv] int64 inclusive cumsum of an estimate of the entries
-
-
-def _footprints(
-    means2d: Tensor, cov2d: Tensor, det2d: Tensor, opacities: Tensor, width: int, height: int
-) -> _Footprints:
-    f64 = torch.float64
-    mx = means2d[:, 0].to(f64)
-    my = means2d[:, 1].to(f64)
-    sxx = cov2d[:, 0].to(f64)
-    sxy = cov2d[:, 1].to(f64)
-    syy = cov2d[:, 2].to(f64)
-    # o exp(-sigma) >= 1/255  <=>  sigma <= tau = log(255 o)
-    tau = torch.log(opacities.to(f64).clamp_min(1e-30) * 255.0)
-    has = (tau > 0) & torch.isfinite(mx) & torch.isfinite(my) & torch.isfinite(syy)
-    tau2 = torch.where(has, 2.0 * tau, torch.zeros_like(tau))
-    # the y extent of the ellipse is sqrt(2 tau Syy)
-    ry = torch.sqrt(tau2 * syy)
-    marg = _EXTENT_MARGIN + 1e-6 * ry
-    y_lo = torch.ceil((my - ry - 0.5 - marg).clamp(-1.0, height + 1.0)).clamp_min(0.0).long()
-    y_hi = torch.floor((my + ry - 0.5 + marg).clamp(-2.0, float(height))).clamp_max(height - 1.0).long()
-    nrows = torch.where(has, (y_hi - y_lo + 1).clamp_min(0), torch.zeros_like(y_lo))
-    # segments per row: about (mean span / SEG + 1), the mean span of an
-    # ellipse row being pi/4 of its x extent 2 rx
-    rx = torch.sqrt(tau2 * sxx).clamp_max(float(width))
-    per_row = (rx * (0.5 * math.pi / SEG) + 1.0).long()
-    inv_syy = 1.0 / syy
-    return _Footprints(
-        params=torch.stack(
-            [mx, my, tau2, inv_syy, sxy * inv_syy, det2d.to(f64).clamp_min(0.0) * inv_syy]
-        ),
-        y_lo=y_lo,
-        nrows=nrows,
-        cum_est=torch.cumsum(nrows * per_row, 0),
-    )
-
-
-def _rows(fp: _Footprints, g0: int, g1: int, width: int) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The (Gaussian, image row) spans of Gaussians [g0, g1), Gaussian-major.
-
-    Returns (row_g, row_y, k0, nseg): Gaussian index, image row, first
-    segment and number of segments of every row with at least one segment.
-    """
-    dev = fp.params.device
-    nrows = fp.nrows[g0:g1]
-    R = int(nrows.sum().item())
-    if R == 0:
-        z = torch.zeros(0, dtype=torch.long, device=dev)
-        return z, z, z, z
-    row_g = torch.repeat_interleave(torch.arange(g0, g1, device=dev), nrows, output_size=R)
-    row_start = torch.cumsum(nrows, 0) - nrows
-    row_y = torch.arange(R, device=dev) - (row_start - fp.y_lo[g0:g1]).index_select(0, row_g - g0)
-    # x span of the ellipse in row y: x given dy is Gaussian with mean
-    # mx + Sxy/Syy dy and variance det/Syy, so the half width is
-    # sqrt((2 tau - dy^2/Syy) det/Syy)
-    mx, my, tau2, inv_syy, slope, cond_var = fp.params.index_select(1, row_g).unbind(0)
-    dy = (row_y.to(torch.float64) + 0.5) - my
-    hx = torch.sqrt((tau2 - dy * dy * inv_syy).clamp_min_(0.0).mul_(cond_var))
-    cx = mx.addcmul_(slope, dy).sub_(0.5)
-    marg = hx * 1e-6 + _EXTENT_MARGIN
-    x_lo = torch.ceil((cx - hx - marg).clamp_(-1.0, width + 1.0)).clamp_min_(0.0).long()
-    x_hi = torch.floor((cx + hx + marg).clamp_(-2.0, float(width))).clamp_max_(width - 1.0).long()
-    k0 = torch.div(x_lo, SEG, rounding_mode="floor")
-    nseg = (torch.div(x_hi, SEG, rounding_mode="floor") - k0 + 1).mul_(x_hi >= x_lo)
-    keep = (nseg > 0).nonzero().squeeze(1)
-    if keep.shape[0] < R:
-        row_g, row_y, k0, nseg = (t.index_select(0, keep) for t in (row_g, row_y, k0, nseg))
-    return row_g, row_y, k0, nseg
-
-
-def _segments(ent_s: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-    """Runs of equal segment ids in the sorted ``ent_s``.
-
-    Returns (segs, firsts, lasts): segment id, index of its first and of its
-    last entry, one element per run.
-    """
-    E = ent_s.shape[0]
-    is_first = torch.ones(E, dtype=torch.bool, device=ent_s.device)
-    if E > 1:
-        torch.ne(ent_s[1:], ent_s[:-1], out=is_first[1:])
-    firsts = is_first.nonzero().squeeze(1)
-    lasts = torch.empty_like(firsts)
-    lasts[:-1] = firsts[1:] - 1
-    lasts[-1] = E - 1
-    return ent_s.index_select(0, firsts), firsts, lasts
-
-
-def _segmented_cumsum_(
-    x: Tensor, firsts: Tensor, lasts: Tensor, offset: Tensor, ws, minus_total: bool = False
-) -> Tuple[Tensor, Tensor]:
-    """In-place inclusive cumulative sum along dim 1, restarted at every run.
-
-    ``x`` [S, E] (float64) is made of the runs ``firsts[r] .. lasts[r]``
-    (contiguous, covering dim 1).  Element i of run r becomes
-    ``offset[:, r] + sum_{firsts[r] <= j <= i} x_j``; with ``minus_total`` the
-    run's own total is subtracted as well, i.e. the result is
-    ``offset - sum_{j > i} x_j``.
-
-    Two global cumsums: the first gives every run's starting offset, which is
-    cancelled by correcting the first element of the run before the second.
-
-    Returns (x, run totals [S, n_runs]).
-    """
-    c = torch.cumsum(x, 1, out=ws.empty(x.shape, x.dtype))
-    before = c.index_select(1, firsts).sub_(x.index_select(1, firsts))
-    total = c.index_select(1, lasts).sub_(before)
-    del c
-    target = offset - before
-    if minus_total:
-        target -= total
-    corr = target.clone()
-    corr[:, 1:] -= target[:, :-1]
-    x.index_add_(1, firsts, corr)
-    return x.cumsum_(1), total
-
-
-def _spmm(crow: Tensor, cols: Tensor, values: Tensor, n_rows: int, n_cols: int, dense: Tensor) -> Tensor:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        A = torch.sparse_csr_tensor(
-            crow, cols, values, size=(n_rows, n_cols), check_invariants=False
-        )
-        return A @ dense
-
-
 # log-transmittance marker of a finished pixel (finite so that it can travel
 # through cumulative sums; anything <= LOG_T_MIN works)
 _DONE = -200.0
@@ -236,81 +104,6 @@ _DONE = -200.0
 # normal float32 (denormals are extremely slow on CPUs) and far below any
 # threshold used here
 _LOG_FLOOR = -80.0
-
-
-class _Workspace:
-    """Scratch memory for the large per-pair temporaries, reused across depth
-    slices and calls (CPU only; one per thread).
-
-    Large fresh allocations are backed by freshly mapped pages, and on CPU the
-    page faults of first touching them cost about as much as the arithmetic
-    done on them.  Temporaries are carved out of one cached buffer per dtype
-    (a bump allocator reset at every slice); nothing allocated here may
-    outlive the slice that allocated it.
-    """
-
-    _ALIGN = 16  # elements
-
-    def __init__(self) -> None:
-        self._bufs: Dict[torch.dtype, Tensor] = {}
-        self._used: Dict[torch.dtype, int] = {}
-
-    def reset(self) -> None:
-        self._used.clear()
-
-    def empty(self, shape: Sequence[int], dtype: torch.dtype) -> Tensor:
-        n = math.prod(shape)
-        used = self._used.get(dtype, 0)
-        buf = self._bufs.get(dtype)
-        if buf is None or used + n > buf.numel():
-            size = used + n
-            if size * dtype.itemsize > _WORKSPACE_MAX_BYTES:
-                return torch.empty(tuple(shape), dtype=dtype)
-            old = 0 if buf is None else buf.numel()
-            # grow geometrically; live views keep the old storage alive
-            size = min(max(size, old + old // 2, 1 << 16), _WORKSPACE_MAX_BYTES // dtype.itemsize)
-            buf = self._bufs[dtype] = torch.empty(size, dtype=dtype)
-            used = 0
-        self._used[dtype] = used + -(-n // self._ALIGN) * self._ALIGN
-        return buf[used : used + n].view(tuple(shape))
-
-    def release(self) -> None:
-        self._bufs.clear()
-        self._used.clear()
-
-
-class _NoWorkspace:
-    """Plain allocations (CUDA has its own caching allocator)."""
-
-    def __init__(self, device: torch.device) -> None:
-        self.device = device
-
-    def reset(self) -> None:
-        pass
-
-    def empty(self, shape: Sequence[int], dtype: torch.dtype) -> Tensor:
-        return torch.empty(tuple(shape), dtype=dtype, device=self.device)
-
-
-# cached scratch memory per thread is capped at this many bytes per dtype
-_WORKSPACE_MAX_BYTES = 256 * 1024 * 1024
-_LOCAL = threading.local()
-
-
-def _workspace(device: torch.device):
-    if device.type != "cpu":
-        return _NoWorkspace(device)
-    ws = getattr(_LOCAL, "workspace", None)
-    if ws is None:
-        ws = _LOCAL.workspace = _Workspace()
-    return ws
-
-
-def release_workspace() -> None:
-    """Free the scratch memory cached by the CPU rasteriser in this thread."""
-    ws = getattr(_LOCAL, "workspace", None)
-    if ws is not None:
-        ws.release()
 
 
 def _next_up(x: float, dtype: torch.dtype) -> float:
@@ -339,7 +132,7 @@ def _entry_geometry(ent_s: Tensor, n_seg_x: int, dtype: torch.dtype) -> Tuple[Te
 
 
 def _composite_forward(
-    fp: _Footprints,
+    fp: Footprints,
     gparams: Tensor,
     feats1: Tensor,
     n_seg_x: int,
@@ -370,7 +163,7 @@ def _composite_forward(
     any_done = pad > 0
     n_active = n_seg
 
-    ws = _workspace(dev)
+    ws = workspace_for(dev)
     bytes_per_entry = SEG * (4 * C1 + 96)
     max_entries = max(_MIN_SLICE_ENTRIES, _SLICE_BYTES // bytes_per_entry)
     slices: List[_Slice] = []
@@ -384,7 +177,7 @@ def _composite_forward(
         g1 = int(torch.searchsorted(fp.cum_est, done_est + target, right=False).item()) + 1
         g1 = min(max(g1, g0 + 1), Nv)
         done_est = int(fp.cum_est[g1 - 1].item())
-        row_g, row_y, k0, nseg = _rows(fp, g0, g1, width)
+        row_g, row_y, k0, nseg = footprint_rows(fp, g0, g1, width)
         g0 = g1
         if row_g.shape[0] == 0:
             continue
@@ -413,7 +206,7 @@ def _composite_forward(
         ent_g = ent_g.index_select(0, perm)
         ent_s = key.long()
         del key, perm
-        segs, firsts, lasts = _segments(ent_s)
+        segs, firsts, lasts = entry_segments(ent_s)
         stats.n_evaluated += E * SEG
         stats.n_slices += 1
 
@@ -435,7 +228,7 @@ def _composite_forward(
         one_m = torch.mul(alpha, -1.0, out=ws.empty((SEG, E), dtype)).add_(1.0)
         l64 = ws.empty((SEG, E), torch.float64)
         l64.copy_(torch.log(one_m, out=ws.empty((SEG, E), dtype)))
-        incl, _ = _segmented_cumsum_(l64, firsts, lasts, carry.index_select(1, segs), ws)
+        incl, _ = segmented_cumsum_(l64, firsts, lasts, carry.index_select(1, segs), ws)
         # new carry: log T after this slice, _DONE for finished pixels
         new = incl.index_select(1, lasts)
         carry[:, segs] = torch.nn.functional.threshold(new, LOG_T_MIN, _DONE)
@@ -462,7 +255,7 @@ def _composite_forward(
         crow[-1] = SEG * E
         cols = ws.empty((SEG, E), torch.int32)
         cols.copy_(ent_g.view(1, E))
-        acc += _spmm(crow, cols.view(-1), w.view(-1), n_pix, Nv, feats1)
+        acc += csr_matmul(crow, cols.view(-1), w.view(-1), n_pix, Nv, feats1)
         del cols, crow
 
         # ---- keep the entries that contribute somewhere ---------------------
@@ -500,14 +293,14 @@ def _composite_backward(slices: List["_Slice"], G: Tensor, featsT: Tensor, n_seg
     d_featsT = torch.zeros(C, Nv, dtype=dtype, device=dev)
     # per pixel: sum of w_j v_j over the slices behind
     tail = torch.zeros(SEG, n_seg, dtype=torch.float64, device=dev)
-    ws = _workspace(dev)
+    ws = workspace_for(dev)
 
     for sl in reversed(slices):
         ws.reset()
         ent_g, ent_s, a, T = sl.ent_g, sl.ent_s, sl.a, sl.T
         E = ent_s.shape[0]
         shape = (SEG, E)
-        segs, firsts, lasts = _segments(ent_s)
+        segs, firsts, lasts = entry_segments(ent_s)
         alpha = torch.clamp(a, max=ALPHA_MAX, out=ws.empty(shape, dtype))
         w = torch.mul(alpha, T, out=ws.empty(shape, dtype))
         # dL/dC of every pair's pixel, channel-major [C + 1, SEG, E]
@@ -524,7 +317,7 @@ def _composite_backward(slices: List["_Slice"], G: Tensor, featsT: Tensor, n_seg
         # -(sum_{j behind i} w_j v_j), behind = later in this slice or in the
         # slices behind it (tail)
         u = ws.empty(shape, torch.float64).copy_(w.mul_(v))
-        neg_suffix, total = _segmented_cumsum_(
+        neg_suffix, total = segmented_cumsum_(
             u, firsts, lasts, tail.index_select(1, segs).neg_(), ws, minus_total=True
         )
         tail[:, segs] += total
@@ -645,7 +438,7 @@ def rasterize_projected(
         cov2d = cov2d.detach()
         if det2d is None:
             det2d = cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] * cov2d[:, 1]
-        fp = _footprints(means2d.detach(), cov2d, det2d.detach(), opacities.detach(), width, height)
+        fp = footprints(means2d.detach(), cov2d, det2d.detach(), opacities.detach(), width, height)
     if means2d.shape[0] == 0 or int(fp.nrows.sum().item()) == 0:
         # nothing covers any pixel; an empty sum keeps the outputs attached to
         # the graph (exactly 0, zero gradients)

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import math
 import os
-import platform
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -56,19 +55,32 @@ from typing import Any, Dict, List, Literal, Optional, Tuple
 import numpy as np
 import torch
 
-from splatreplace_ns.poses.errors import rotation_error_deg, translation_error_rel
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.instance import InstanceGaussians
-from splatreplace_ns.poses.register import register_instances, with_floor_up_axis
-from splatreplace_ns.poses.variants import REGISTRATION_VARIANTS, registration_variant
+from splatreplace_ns.poses.register import register_instances
 from splatreplace_ns.tools.bench.gt_labels import label_gaussians_from_ground_truth, training_views
 from splatreplace_ns.tools.bench.output import write_result_json
+from splatreplace_ns.tools.bench.register_output import machine_info, print_table
+from splatreplace_ns.tools.bench.register_rows import TRUTH_START_ROWS, matcher_used, row_configs, with_floor_up_axes
+from splatreplace_ns.tools.bench.register_scene import (
+    BenchScene,
+    GroundTruthInstance,
+    ground_truth_instances,
+    instance_gaussians,
+    load_bench_scene,
+    load_pipeline,
+    match_segments_to_ground_truth,
+    model_sh_degree,
+    pose_errors,
+    rigid_part,
+    scale_intrinsics,
+    shown_path,
+)
 
 DEFAULT_ROWS: Tuple[str, ...] = (
     "ours", "paper", "no_upright", "no_shape_first", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
     "icp_from_truth",
 )
-TRUTH_START_ROWS = ("icp_from_truth",)  # rows that start from the ground truth instead of searching
 
 
 @dataclass
@@ -130,337 +142,10 @@ class BenchRegisterConfig:
 # ----------------------------------------------------------------------------- pure helpers
 
 
-def rigid_part(pose: np.ndarray) -> Tuple[np.ndarray, float]:
-    """Splits a similarity object→world pose into its rigid part and its scale.
-
-    Args:
-        pose: [4, 4] ``[s R | t]`` (the dataparser's normalised pose: rotation block scaled by s > 0).
-    Returns:
-        [4, 4] ``[R | t]`` and s.
-    """
-    pose = np.asarray(pose, dtype=np.float64)
-    scale = float(np.cbrt(np.linalg.det(pose[:3, :3])))
-    if not scale > 0:
-        raise ValueError(f"pose has a non-positive scale (det {np.linalg.det(pose[:3, :3]):.3g})")
-    rigid = pose.copy()
-    rigid[:3, :3] /= scale
-    return rigid, scale
-
-
-def pose_errors(
-    T_est: np.ndarray, P_source: np.ndarray, P_template: np.ndarray, symmetry: str, bbox_diag: float
-) -> Tuple[float, float]:
-    """Errors of a registration ``template ≈ T_est · source`` against ground-truth object poses.
-
-    The source's estimated pose is ``T_est⁻¹ · P_template``; it is compared with ``P_source``.
-
-    Args:
-        T_est: [4, 4] rigid estimate.
-        P_source, P_template: [4, 4] object→world poses (similarities with the same scale s, e.g. in the
-            dataparser's normalised frame; s = 1 for rigid poses).
-        symmetry: the object's symmetry ("none", "rot_z:N", "rot_z:inf").
-        bbox_diag: bounding-box diagonal of the object in object units (the scale s is applied here).
-    Returns:
-        rotation error (degrees, modulo symmetry), translation error (fraction of the diagonal).
-    """
-    source, scale = rigid_part(P_source)
-    template, _ = rigid_part(P_template)
-    estimate = np.linalg.inv(np.asarray(T_est, dtype=np.float64)) @ template
-    return (
-        rotation_error_deg(estimate, source, symmetry),
-        translation_error_rel(estimate, source, bbox_diag * scale),
-    )
-
-
-def scale_intrinsics(Ks: torch.Tensor, from_size: Tuple[int, int], to_size: Tuple[int, int]) -> torch.Tensor:
-    """Intrinsics of the same cameras at another image size.
-
-    Args:
-        Ks: [V, 3, 3] at ``from_size`` (W, H).
-        to_size: (W, H).
-    Returns:
-        [V, 3, 3] (focal lengths and principal point scaled per axis).
-    """
-    sx, sy = to_size[0] / from_size[0], to_size[1] / from_size[1]
-    scale = torch.tensor([[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]], dtype=Ks.dtype, device=Ks.device)
-    return scale @ Ks
-
-
-def match_segments_to_ground_truth(
-    seg_labels: torch.Tensor, gt_labels: torch.Tensor
-) -> Dict[int, Tuple[Optional[int], float]]:
-    """Ground-truth instance of each segmented instance by majority overlap.
-
-    Args:
-        seg_labels: [N] segmented instance per Gaussian (0 = background).
-        gt_labels: [N] ground-truth instance per Gaussian (0 = background).
-    Returns:
-        {segmented id: (ground-truth id with the most shared Gaussians, or None when none of its Gaussians
-        has a ground-truth instance; the fraction of its Gaussians with that id)}; ties go to the smaller id.
-    """
-    if seg_labels.shape != gt_labels.shape:
-        raise ValueError(f"label shapes differ: {tuple(seg_labels.shape)} vs {tuple(gt_labels.shape)}")
-    out: Dict[int, Tuple[Optional[int], float]] = {}
-    for seg_id in sorted(int(i) for i in torch.unique(seg_labels) if int(i) > 0):
-        inside = gt_labels[seg_labels == seg_id]
-        counts = torch.bincount(inside[inside > 0])
-        if counts.numel() == 0 or int(counts.max()) == 0:
-            out[seg_id] = (None, 0.0)
-            continue
-        gt_id = int(counts.argmax())
-        out[seg_id] = (gt_id, float(counts[gt_id]) / float(inside.numel()))
-    return out
-
-
 # ----------------------------------------------------------------------------- scene and model
 
 
-@dataclass
-class GroundTruthInstance:
-    """One instance of the scene: class, symmetry, object→normalised-world pose, class bbox diagonal."""
-
-    id: int
-    cls: str
-    symmetry: str
-    pose: np.ndarray
-    """[4, 4] similarity object→world in the model's normalised frame."""
-    bbox_diag: float
-    """Diagonal of the class mesh's bounding box in object units (metres)."""
-
-
-@dataclass
-class BenchScene:
-    """A trained model with what the rows need."""
-
-    pipeline: Any
-    data: Path
-    config_path: Path
-    ground_truth: Dict[int, GroundTruthInstance]
-    gt_labels: torch.Tensor
-    """[N] ground-truth instance of each Gaussian of the model (0 = background)."""
-    time_s: Dict[str, float]
-    reused: bool
-
-
-def _scene(cfg: BenchRegisterConfig) -> Path:
-    from splatreplace_ns.tools.bench.scenes import cached_scene
-
-    return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root, cfg.light)
-
-
-def _shown_path(path: Path) -> str:
-    """``path`` relative to the working directory when it lies below it (results stay free of machine paths)."""
-    path = Path(path).resolve()
-    try:
-        return str(path.relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
-
-
-def _finished_run(config_path: Path) -> bool:
-    models = config_path.parent / "nerfstudio_models"
-    return config_path.exists() and models.is_dir() and any(models.glob("step-*.ckpt"))
-
-
-def load_pipeline(config_path: Path, step: Optional[int] = None):
-    """A finished run's pipeline (eval mode) from its config.yml, with a clear error when it is not one.
-
-    Args:
-        step: the checkpoint step to load (default: the latest).
-    """
-    from nerfstudio.utils.eval_utils import eval_setup
-
-    config_path = Path(config_path)
-    if not _finished_run(config_path):
-        raise FileNotFoundError(
-            f"{config_path}: not a finished run (need config.yml with nerfstudio_models/step-*.ckpt beside it)"
-        )
-    update = None
-    if step is not None:
-        ckpt = config_path.parent / "nerfstudio_models" / f"step-{step:09d}.ckpt"
-        if not ckpt.exists():
-            have = sorted(p.name for p in ckpt.parent.glob("step-*.ckpt"))
-            raise FileNotFoundError(f"{ckpt}: no checkpoint of step {step} (the run has {', '.join(have)})")
-
-        def update(config):
-            config.load_step = step
-            return config
-
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=update)
-    pipeline.eval()
-    return pipeline
-
-
-def train_or_load_base(cfg: BenchRegisterConfig, data: Path) -> Tuple[Any, Path, float, bool]:
-    """The base-stage model of the preset: reused from ``out_dir`` when finished there, else trained.
-
-    Returns:
-        pipeline (eval mode), its config.yml, seconds spent (training or loading), whether it was reused.
-    """
-    from splatreplace_ns.method.train import make_trainer_config, run_training
-
-    name = f"base_{data.name}_{cfg.base_iterations}it"
-    out = (cfg.out_dir / cfg.preset).resolve()
-    config = make_trainer_config(
-        data.resolve(), out, cfg.base_iterations, contrastive_iterations=0, experiment_name=name
-    )
-    config_path = config.get_base_dir() / "config.yml"
-    t0 = time.perf_counter()
-    if _finished_run(config_path):
-        return load_pipeline(config_path), config_path, time.perf_counter() - t0, True
-    trainer = run_training(config)
-    pipeline = trainer.pipeline
-    pipeline.eval()
-    return pipeline, config_path, time.perf_counter() - t0, False
-
-
-def ground_truth_instances(pipeline) -> Dict[int, GroundTruthInstance]:
-    """The dataset's instances with their poses in the model's normalised frame."""
-    from splatreplace_ns.tools.sim import class_mesh
-
-    out = {}
-    diag_of: Dict[str, float] = {}
-    for inst in pipeline.datamanager.train_dataparser_outputs.metadata.get("instances", []):
-        if "transform_matrix" not in inst:
-            raise ValueError(f"instance {inst['id']} has no ground-truth transform_matrix in transforms.json")
-        cls = inst["class"]
-        if cls not in diag_of:
-            diag_of[cls] = float(np.linalg.norm(class_mesh(cls).get_axis_aligned_bounding_box().get_extent()))
-        out[int(inst["id"])] = GroundTruthInstance(
-            int(inst["id"]), cls, inst.get("symmetry", "none"), inst["transform_matrix"].double().numpy(), diag_of[cls]
-        )
-    if not out:
-        raise ValueError("the dataset lists no instances (transforms.json 'instances')")
-    return out
-
-
-def instance_gaussians(
-    model, labels: torch.Tensor, ids, sh_degree: Optional[int]
-) -> Dict[int, InstanceGaussians]:
-    """The Gaussians of each labelled instance, activated (linear scales, opacities in [0, 1]), SH colours.
-
-    Args:
-        model: a SplatReplaceModel.
-        labels: [N] instance per Gaussian.
-        ids: instance ids to extract.
-        sh_degree: SH degree the model renders with (None: plain RGB from sigmoid(features_dc)).
-    """
-    with torch.no_grad():
-        means = model.means.detach().cpu()
-        quats = model.quats.detach().cpu()
-        scales = torch.exp(model.scales.detach().cpu())
-        opacities = torch.sigmoid(model.opacities.detach().cpu()).squeeze(-1)
-        if sh_degree is None:
-            colors = torch.sigmoid(model.features_dc.detach().cpu())
-        else:
-            sh = torch.cat([model.features_dc.detach().cpu()[:, None, :], model.features_rest.detach().cpu()], dim=1)
-            colors = sh[:, : (sh_degree + 1) ** 2]
-    labels = labels.cpu()
-    out = {}
-    for iid in ids:
-        keep = labels == int(iid)
-        out[int(iid)] = InstanceGaussians(
-            means[keep], quats[keep], scales[keep], opacities[keep], colors[keep], sh_degree=sh_degree, id=int(iid)
-        )
-    return out
-
-
-def model_sh_degree(pipeline) -> Optional[int]:
-    """SH degree the model renders with after its base stage (splatfacto raises it every interval)."""
-    model_cfg = pipeline.model.config
-    if model_cfg.sh_degree <= 0:
-        return None
-    steps = int(pipeline.config.base_iterations)
-    return min(steps // model_cfg.sh_degree_interval, model_cfg.sh_degree)
-
-
-def load_bench_scene(cfg: BenchRegisterConfig) -> BenchScene:
-    """Scene, base model (trained or reused), ground-truth poses and ground-truth labels of the Gaussians."""
-    torch.set_num_threads(max(1, min(cfg.threads, os.cpu_count() or 1)))
-    t0 = time.perf_counter()
-    data = _scene(cfg)
-    sim_s = time.perf_counter() - t0
-    pipeline, config_path, train_s, reused = train_or_load_base(cfg, data)
-    t1 = time.perf_counter()
-    gt_labels = label_gaussians_from_ground_truth(pipeline, cfg.depth_tolerance)
-    return BenchScene(
-        pipeline, data, config_path, ground_truth_instances(pipeline), gt_labels,
-        {"sim": sim_s, "load" if reused else "train": train_s, "labels": time.perf_counter() - t1}, reused,
-    )
-
-
 # ----------------------------------------------------------------------------- rows
-
-
-def available_matchers(onnx_model: Optional[str]) -> List[str]:
-    """Matcher names of the matching module at run time ("onnx" only when a model is given)."""
-    from splatreplace_ns.poses import matching
-
-    return [m for m in matching.MATCHERS if m != "onnx" or onnx_model]
-
-
-def row_configs(cfg: BenchRegisterConfig, rows: Tuple[str, ...]) -> List[Tuple[str, RegistrationConfig]]:
-    """(row name, registration settings) for each requested row, "matchers" expanded."""
-    base = cfg.registration
-    onnx_model = getattr(base, "onnx_model", None)
-    out: List[Tuple[str, RegistrationConfig]] = []
-    for row in rows:
-        if row in REGISTRATION_VARIANTS:  # the defaults, the paper's rule, or the defaults less one added rule
-            out.append((row, registration_variant(row, base)))
-        elif row == "no_virtual_views":
-            out.append((row, replace(base, method="no_virtual_views")))
-        elif row == "fpfh":
-            out.append((row, replace(base, method="fpfh")))
-        elif row == "fpfh_no_icp":
-            out.append((row, replace(base, method="fpfh", icp=False)))
-        elif row in TRUTH_START_ROWS:
-            out.append((row, replace(base, method="ours")))
-        elif row == "matchers":
-            for m in available_matchers(onnx_model):
-                out.append((f"matcher:{m}", replace(base, method="ours", robust_matcher=m)))
-        elif row.startswith("matcher:"):
-            name = row.split(":", 1)[1]
-            known = available_matchers(onnx_model)
-            if name not in known:
-                raise ValueError(f"row {row!r}: unknown or unavailable matcher {name!r}; available: {', '.join(known)}")
-            out.append((row, replace(base, method="ours", robust_matcher=name)))
-        else:
-            raise ValueError(
-                f"unknown row {row!r}; choose from ours, paper, no_upright, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
-                "fpfh_no_icp, icp_from_truth"
-            )
-    return out
-
-
-def with_floor_up_axes(
-    rows: List[Tuple[str, RegistrationConfig]], means: torch.Tensor, labels: torch.Tensor
-) -> List[Tuple[str, RegistrationConfig]]:
-    """Every upright row gets the floor's normal as its up axis, as the training pipeline would find it;
-    found once, so that rows differ only in what they ablate (open3d's RANSAC is not bit-reproducible).
-
-    Args:
-        rows: (name, settings) pairs; means: (N, 3) Gaussian centres; labels: (N,) instance ids, 0 = none.
-    """
-    upright = [reg for _, reg in rows if reg.upright]
-    if not upright:
-        return rows
-    labels = labels.to(means.device)
-    floor, message = with_floor_up_axis(upright[0], means[labels == 0], means[labels > 0])
-    print(message)
-    return [(name, replace(reg, up_axis=floor.up_axis, upright=floor.upright) if reg.upright else reg)
-            for name, reg in rows]
-
-
-def _matcher_used(name: str, reg: RegistrationConfig) -> str:
-    """The backend that actually runs for a matcher name (get_matcher falls back when one cannot load)."""
-    from splatreplace_ns.poses.register import get_matcher
-
-    try:
-        if name == "onnx":
-            return get_matcher(name, onnx_model=getattr(reg, "onnx_model", None)).name
-        return get_matcher(name).name
-    except Exception as exc:  # reported in the row, the registration itself will say what failed
-        return f"unavailable ({exc})"
 
 
 def run_row(
@@ -489,7 +174,7 @@ def run_row(
                          missing)
     if reg.method != "fpfh":
         for m in (reg.fast_matcher, reg.robust_matcher):
-            _matcher_used(m, reg)  # load weights before the clock starts
+            matcher_used(m, reg)  # load weights before the clock starts
     t0 = time.perf_counter()
     results = register_instances(instances, classes, reg, cameras=cameras if reg.method == "no_virtual_views" else None)
     return score_row(name, reg, results, time.perf_counter() - t0, instances, classes, gt_of, ground_truth, missing)
@@ -546,8 +231,8 @@ def score_row(
         "time_s_total": wall,
         "registration": {
             "method": reg.method, "icp": reg.icp,
-            "fast_matcher": None if reg.method == "fpfh" else _matcher_used(reg.fast_matcher, reg),
-            "robust_matcher": None if reg.method == "fpfh" else _matcher_used(reg.robust_matcher, reg),
+            "fast_matcher": None if reg.method == "fpfh" else matcher_used(reg.fast_matcher, reg),
+            "robust_matcher": None if reg.method == "fpfh" else matcher_used(reg.robust_matcher, reg),
             "image_size": list(reg.image_size), "views": reg.n_azimuth * reg.n_elevation, "top_k": reg.top_k,
             "select": reg.select,
         },
@@ -713,7 +398,7 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         return {
             "benchmark": "register", "preset": cfg.preset, "rows": [], "rows_segmentation": seg.pop("rows"),
             "segmentation": seg, "time_s": {"total": time.perf_counter() - t_start},
-            "parameters": {"seg_run": _shown_path(cfg.seg_run), "seg_step": cfg.seg_step,
+            "parameters": {"seg_run": shown_path(cfg.seg_run), "seg_step": cfg.seg_step,
                            "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)}},
             "machine": machine_info(load_avg),
         }
@@ -756,65 +441,8 @@ def run_register_bench(cfg: BenchRegisterConfig, scene: Optional[BenchScene] = N
         "res": cfg.res, "light": cfg.light, "n_train": cfg.n_train, "n_test": cfg.n_test,
         "base_iterations": cfg.base_iterations, "depth_tolerance": cfg.depth_tolerance, "rows": list(cfg.rows),
         "model_reused": scene.reused,
-        "run": _shown_path(scene.config_path), "sh_degree": model_sh_degree(pipeline),
+        "run": shown_path(scene.config_path), "sh_degree": model_sh_degree(pipeline),
         "registration": {f.name: getattr(cfg.registration, f.name) for f in fields(cfg.registration)},
     }
     result["machine"] = machine_info(load_avg)
     return result
-
-
-def machine_info(load_avg=None) -> Dict:
-    import cv2
-    import open3d
-    import pycolmap
-
-    import nerfstudio
-
-    return {
-        "platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(), "load_average_at_start": list(load_avg) if load_avg else None,
-        "cuda": torch.cuda.is_available(),
-        "versions": {
-            "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
-            "nerfstudio": getattr(nerfstudio, "__version__", "1.1.5"), "open3d": open3d.__version__,
-            "opencv": cv2.__version__, "pycolmap": pycolmap.__version__,
-        },
-    }
-
-
-def print_table(result: Dict) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    def fmt(value, scale=1.0, digits=3):
-        return "—" if value is None or not math.isfinite(value) else f"{scale * value:.{digits}f}"
-
-    console = Console(width=max(120, Console().width))  # not squeezed to 80 columns when piped to a log
-    tables = [("rows", "instances from ground-truth masks")] if result["rows"] else []
-    if "rows_segmentation" in result:
-        tables.append(("rows_segmentation", "instances from the segmentation stage"))
-    for key, title in tables:
-        table = Table(title=f"registration on '{result['preset']}': {title}")
-        table.add_column("method", no_wrap=True)
-        for col in ("rot mean (°)", "rot median (°)", "rot max (°)", "trans mean (% diag)", "failures"):
-            table.add_column(col)
-        table.add_column("s/instance")
-        for row in result[key]:
-            table.add_row(
-                row["method"], fmt(row["rot_err_deg_mean"]), fmt(row.get("rot_err_deg_median", float("nan"))),
-                fmt(row["rot_err_deg_max"]),
-                fmt(row["trans_err_rel_mean"], 100.0), f"{row['failures']}/{row['n_sources']}",
-                fmt(row["time_s_per_instance"], digits=1),
-            )
-        console.print(table)
-    for cls, pw in result.get("pairwise", {}).items():
-        table = Table(title=f"'{result['preset']}', {cls}: rotation error (°) of each copy (row) registered onto "
-                            f"each other (column)")
-        table.add_column("source \\ template", no_wrap=True)
-        for j in pw["ids"]:
-            table.add_column(str(j))
-        for a, i in enumerate(pw["ids"]):
-            table.add_row(str(i), *("·" if a == b else ("fail" if v is None else f"{v:.1f}")
-                                    for b, v in enumerate(pw["rot_err_deg"][a])))
-        console.print(table)
-    console.print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in result["time_s"].items()))

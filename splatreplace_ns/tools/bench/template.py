@@ -231,7 +231,7 @@ def train_ours_and_baseline(
     registration = {int(k): {"success": v["success"], "message": v["message"]} for k, v in model.registration.items()}
 
     if worker is not None:
-        from splatreplace_ns.tools.bench.register import load_pipeline
+        from splatreplace_ns.tools.bench.register_scene import load_pipeline
 
         if worker.is_alive():
             print(f"ours is done; waiting for the baseline's run beside it (progress in {out / 'baseline.log'})", flush=True)
