@@ -193,6 +193,8 @@ class SplatReplaceDataParser(Nerfstudio):
                 "class": str(inst.get("class", "object")),
                 "symmetry": str(inst.get("symmetry", "none")),
             }
+            if "size" in inst:  # bounding-box diagonal in the object's frame (relative translation errors)
+                entry["size"] = float(inst["size"])
             if "transform_matrix" in inst:
                 entry["transform_matrix"] = torch.from_numpy(
                     normalise_object_pose(np.array(inst["transform_matrix"]), transform, outputs.dataparser_scale)

@@ -61,14 +61,12 @@ class SegmentationConfig:
     """Relative depth margin for the carving visibility test."""
     carve_mask_tolerance: int = 1
     """Carving: a centre within this many pixels of an instance's rendered mask counts as inside it (thin parts
-    such as chair legs are often missing from the thresholded masks; office leftovers after carving,
-    `splatreplace bench segment`, README)."""
+    such as chair legs are often missing from the thresholded masks)."""
     min_alpha: float = 0.5
     """Pixels with less accumulated opacity stay background in the rendered masks."""
     min_mask_coverage: float = 0.2
     """Warn about an instance whose selected Gaussians cover less of its rendered masks than this: carving then
-    removes the rest of it when it is replaced (tiny scene after 300 + 200 iterations: 2-7 %, and carving takes
-    the training views' PSNR from 26.6 to 15.9 dB; after 400 + 300: 30-55 %; the demo's office: 42-88 %)."""
+    removes the rest of it when it is replaced (usually a sign of stages too short for the scene)."""
     lift: Literal["contrastive", "voting"] = "contrastive"
     """How the 2D instance masks become per-Gaussian instances. contrastive: train per-Gaussian features for
     --pipeline.contrastive-iterations steps (paper §4.1); voting: no contrastive stage, each Gaussian takes the

@@ -74,7 +74,7 @@ class RegistrationConfig:
             ``no_upright``).
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished (a copy
             that really leans or lies on its side; free ICP on a sparse copy tilts it by several degrees, see
-            docs/registration.md).
+            docs/deviations.md, upright polish).
         colour_fitness_ratio: with select="photometric", the colour score chooses only among the acceptable
             candidates whose fitness is at least this fraction of the best one's (shape first). Under one light
             a side face's colour depends on where it points in the world, so a wrong pose that lays a partly

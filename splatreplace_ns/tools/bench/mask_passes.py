@@ -23,7 +23,7 @@ from typing import Dict, List, Optional, Tuple
 from splatreplace_ns.tools.bench.output import fmt_number, spread, write_result_json
 
 # each rule and the settings that take it out (the ClusteringConfig docstrings say "0 turns it off"). Fifteen more
-# were measured here and deleted (docs/masks_geometric.md)
+# were measured here and deleted (docs/deviations.md, "Deleted after measurement")
 PASSES: Dict[str, Dict[str, object]] = {
     "two_sidedness": {"max_two_sidedness": 0.5},
     "floor_under_band": {"floor_under_band": 0.0},
