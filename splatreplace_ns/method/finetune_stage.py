@@ -19,7 +19,9 @@ from splatreplace_ns.template.revert import revert_instances, score_replaced_ins
 
 
 class FinetuneStage:
-    """The shared templates (paper §4.3) and their fine-tuning: templates built from the accepted instances, the check after fine-tuning that puts back a copy that explains its pixels worse, and the optimizer bookkeeping when parameters change size."""
+    """The shared templates (paper §4.3) and their fine-tuning: templates built from the accepted instances, the check
+    after fine-tuning that puts back a copy that explains its pixels worse, and the optimizer bookkeeping when
+    parameters change size."""
 
     @torch.no_grad()
     def build_shared_templates(self, start_step: int) -> None:

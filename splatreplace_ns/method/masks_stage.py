@@ -20,7 +20,8 @@ from splatreplace_ns.datamanager.validate import image_size
 
 
 class MasksStage:
-    """The masks stage of a capture without instance masks: after the base stage, from the clicks (clicks.json or the viewer) and the base model."""
+    """The masks stage of a capture without instance masks: after the base stage, from the clicks (clicks.json or the
+    viewer) and the base model."""
 
     def transforms_path(self) -> Path:
         data = Path(self.datamanager.get_datapath())
@@ -190,7 +191,6 @@ class MasksStage:
         )
         return self.masks_report
 
-    # ------------------------------------------------------------ segmentation
     def clicks_path(self) -> Path:
         if self.config.segmentation.clicks is not None:
             return Path(self.config.segmentation.clicks)

@@ -18,9 +18,10 @@ from splatreplace_ns.template.compose import ComposedScene, compose_scene, insta
 
 
 class ReplacedScene:
-    """The replaced scene of a SplatReplaceModel: the templates composed with every copy's pose and SH offsets, baked into plain Gaussians for inference-only loading, densified during fine-tuning, and rendered for the stages (features, instance ids, a given Gaussian set)."""
+    """The replaced scene of a SplatReplaceModel: the templates composed with every copy's pose and SH offsets, baked
+    into plain Gaussians for inference-only loading, densified during fine-tuning, and rendered for the stages
+    (features, instance ids, a given Gaussian set)."""
 
-    # ------------------------------------------------------------------ shared templates
     @property
     def has_templates(self) -> bool:
         return self.stage == "finetune" and len(self.instance_table.ids) > 0

@@ -23,7 +23,8 @@ from splatreplace_ns.poses.register import register_instances, with_floor_up_axi
 
 
 class RegistrationStage:
-    """The registration stage (paper §4.2): every selected instance onto its class template, each pose chosen against the training images, optionally checked before replacement."""
+    """The registration stage (paper §4.2): every selected instance onto its class template, each pose chosen against
+    the training images, optionally checked before replacement."""
 
     def register_instances(self, instances: Dict, classes: Dict[int, str], config) -> Dict:
         """The registration hook (paper §4.2): every instance onto its class template.

@@ -77,7 +77,8 @@ class SegmentationConfig:
 
 
 class SegmentationStage:
-    """The segmentation stage (paper §4.1): instances selected by one click each on the contrastive features (or the lifted masks' votes), in the viewer or from clicks.json, then carved."""
+    """The segmentation stage (paper §4.1): instances selected by one click each on the contrastive features (or the
+    lifted masks' votes), in the viewer or from clicks.json, then carved."""
 
     def train_index_of(self, file_path: str) -> int:
         names = [Path(p).name for p in self.datamanager.train_dataset.image_filenames]
@@ -321,7 +322,6 @@ class SegmentationStage:
         )
         return self.segmentation_report
 
-    # ------------------------------------------------------------ registration and shared templates
     @torch.no_grad()
     def instance_gaussians(self) -> Dict[int, InstanceGaussians]:
         """The segmented instances as Gaussian sets (world frame, activated parameters)."""

@@ -1,6 +1,6 @@
-"""Instance registration geometry (paper §4.2): virtual cameras around an instance, lifting 2D matches to
-3D with rendered depth, robust PnP and the source→template transform, ICP / FPFH-RANSAC, 2D matchers and
-pose errors modulo symmetry."""
+"""Poses (paper §4.2). In: each instance's Gaussians (and the training views, to choose among candidates). Out: per
+instance a pose onto its class template, accepted, ambiguous or refused, with the reason: virtual views, 2D matching,
+lifting, PnP, ICP, multi-start turns, the choice against the training images."""
 
 from splatreplace_ns.poses.errors import geodesic_deg, rotation_error_deg, translation_error_rel
 from splatreplace_ns.poses.icp import fpfh_ransac, refine_icp

@@ -1,6 +1,6 @@
-"""Gaussian-splatting renderer: a vectorised pure-PyTorch rasteriser (CPU or
-GPU, autograd backward) with gsplat's conventions, plus a gsplat (CUDA)
-backend behind the same interface."""
+"""Rendering (every stage renders through here). In: Gaussians (means, quats, scales, opacities, colours or SH) and
+a camera. Out: image, depth, alpha, screen-space means and radii. A vectorised pure-PyTorch rasteriser (CPU or GPU,
+autograd backward) with gsplat's conventions, and gsplat (CUDA) behind the same interface."""
 
 from .cameras import world_to_camera
 from .projection import ProjectedGaussians, project_gaussians, quat_to_rotmat

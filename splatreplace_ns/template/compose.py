@@ -1,4 +1,5 @@
-"""Shared-template math (paper §4.3): poses, SH rotation and composing instances into one scene.
+"""Shared-template math (paper §4.3): instance poses and composing instances into one scene (the SH rotation is
+``render.transform``'s).
 
 The scene after registration is stored as one set of Gaussians: background Gaussians (class 0) in
 world coordinates and, per class ``c ≥ 1``, template Gaussians in *template space* (the world frame of
