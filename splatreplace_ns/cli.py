@@ -19,6 +19,7 @@ from splatreplace_ns.tools.bench.mask_passes import BenchMaskPassesConfig
 from splatreplace_ns.tools.bench.masks import BenchMasksConfig
 from splatreplace_ns.tools.bench.register import BenchRegisterConfig
 from splatreplace_ns.tools.bench.render import BenchRenderConfig
+from splatreplace_ns.tools.bench.scale import BenchScaleConfig
 from splatreplace_ns.tools.bench.segment import BenchSegmentConfig
 from splatreplace_ns.tools.bench.template import BenchTemplateConfig
 from splatreplace_ns.tools.bench.tradeoff import BenchTradeoffConfig
@@ -41,6 +42,7 @@ BenchCommands = Union[
     Annotated[BenchTradeoffConfig, tyro.conf.subcommand("tradeoff")],
     Annotated[BenchSuiteConfig, tyro.conf.subcommand("suite")],
     Annotated[BenchCaptureConfig, tyro.conf.subcommand("capture")],
+    Annotated[BenchScaleConfig, tyro.conf.subcommand("scale")],
 ]
 
 
