@@ -82,20 +82,21 @@ def test_summary_names_the_worst_stage_and_keeps_failures():
         {"stage": "a", "sweep": "gaussians", "gaussians": n, "count": n, "seconds": 1e-6 * n, "peak_rss_mb": 1.0,
          "peak_growth_mb": 0.5} for n in (1000, 10000)
     ] + [
-        {"stage": "b", "sweep": "gaussians", "gaussians": n, "count": n, "seconds": 1e-9 * n**2, "peak_rss_mb": 2.0,
-         "peak_growth_mb": 1.0, "instances": 2} for n in (1000, 10000)
-    ] + [{"stage": "b", "sweep": "gaussians", "gaussians": 10**6, "error": "stopped after 5 s"}]
+        {"stage": "registration", "sweep": "gaussians", "gaussians": n, "count": n, "seconds": 1e-9 * n**2,
+         "peak_rss_mb": 2.0, "peak_growth_mb": 1.0, "instances": 2} for n in (1000, 10000)
+    ] + [{"stage": "registration", "sweep": "gaussians", "gaussians": 10**6, "error": "stopped after 5 s"}]
     import splatreplace_ns.tools.bench.scale as scale
 
-    scale.COUNT_OF.update(a="x", b="y")
+    scale.COUNT_OF.update(a="x")
     try:
         summary = summarise(rows)
     finally:
-        scale.COUNT_OF.pop("a"), scale.COUNT_OF.pop("b")
-    assert summary["stages"]["a"]["exponent"] == pytest.approx(1.0)
-    assert summary["stages"]["b"]["exponent"] == pytest.approx(2.0)
-    assert summary["worst_stage"] == "b" and summary["stages"]["b"]["failed"] == ["1000000 G: stopped after 5 s"]
-    assert summary["stages"]["b"]["seconds_per_instance"] == pytest.approx(1e-9 * 1e8 / 2)
+        scale.COUNT_OF.pop("a")
+    b = summary["stages"]["registration"]
+    assert summary["stages"]["a"]["exponent"] == pytest.approx(1.0) and b["exponent"] == pytest.approx(2.0)
+    assert summary["worst_stage"] == "registration" and b["failed"] == ["1000000 G: stopped after 5 s"]
+    assert b["seconds_per_instance"] == pytest.approx(1e-9 * 1e8 / 2)  # registration's target is per instance
+    assert summary["stages"]["a"]["seconds_per_instance"] == pytest.approx(1e-2)
 
 
 @pytest.fixture(scope="module")

@@ -91,7 +91,7 @@ def prepare_base(cfg: BenchScaleConfig) -> Dict[str, Any]:
     import torch
 
     from splatreplace_ns.tools.bench.gt_labels import label_gaussians_from_ground_truth
-    from splatreplace_ns.tools.bench.register_scene import scene_folder, train_or_load_base
+    from splatreplace_ns.tools.bench.register_scene import scene_folder, shown_path, train_or_load_base
 
     spec = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
     reg = _register_config(spec)
@@ -101,7 +101,7 @@ def prepare_base(cfg: BenchScaleConfig) -> Dict[str, Any]:
     if not labels_path.exists():
         torch.save(label_gaussians_from_ground_truth(pipeline, reg.depth_tolerance).cpu(), labels_path)
     return {"config": str(config_path), "labels": str(labels_path), "base_gaussians": int(pipeline.model.num_points),
-            "reused": reused, "prepare_s": time.perf_counter() - started}
+            "reused": reused, "prepare_s": time.perf_counter() - started, "run": shown_path(config_path.parent)}
 
 
 def measure(spec: Dict[str, Any]) -> Dict[str, Any]:
@@ -166,6 +166,11 @@ def measurement_specs(cfg: BenchScaleConfig, base: Dict[str, Any]) -> List[Dict[
     return specs
 
 
+def seconds_per(row: Dict[str, Any]) -> float:
+    """A measurement's time, per instance for registration (the target is per instance)."""
+    return row["seconds"] / row["instances"] if row["stage"] == "registration" else row["seconds"]
+
+
 def summarise(rows: List[Dict[str, Any]]) -> Dict[str, Any]:
     """Per stage: the fitted exponent of time against its count over the Gaussian sweep, the largest run's time
     and peak memory; and the stage that grows worst."""
@@ -174,12 +179,12 @@ def summarise(rows: List[Dict[str, Any]]) -> Dict[str, Any]:
         done = [r for r in rows if r["stage"] == stage and r["sweep"] == "gaussians" and "error" not in r]
         entry: Dict[str, Any] = {"count": COUNT_OF[stage], "measured": len(done)}
         if len({r["count"] for r in done}) >= 2:
-            per = [r["seconds"] / r.get("instances", 1) for r in done]
+            per = [seconds_per(r) for r in done]
             entry["exponent"], entry["r2"] = power_law_exponent([r["count"] for r in done], per)
         if done:
             largest = max(done, key=lambda r: r["gaussians"])
             entry.update(largest_gaussians=largest["gaussians"], seconds=largest["seconds"],
-                         seconds_per_instance=largest["seconds"] / largest.get("instances", 1),
+                         seconds_per_instance=seconds_per(largest),
                          peak_rss_mb=largest["peak_rss_mb"], peak_growth_mb=largest["peak_growth_mb"])
         entry["failed"] = [f"{r['gaussians']} G: {r['error']}" for r in rows
                            if r["stage"] == stage and r["sweep"] == "gaussians" and "error" in r]
@@ -208,7 +213,7 @@ def run_scale_bench(cfg: BenchScaleConfig) -> Dict[str, Any]:
         print(f"[scale]   {said}", flush=True)
     return {
         "benchmark": "scale", "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
-        "base": base, "rows": rows, "summary": summarise(rows), "wall_s": time.perf_counter() - started,
+        "base": {k: v for k, v in base.items() if k not in ("config", "labels")}, "rows": rows, "summary": summarise(rows), "wall_s": time.perf_counter() - started,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "threads": cfg.threads,
                     "torch": torch.__version__},
         "how_grown": "every Gaussian of the trained base model split into children drawn from it (centres from its "
@@ -246,6 +251,7 @@ def write_scale_plot(result: Dict[str, Any], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     stages = list(result["summary"]["stages"])
     cols = min(4, max(1, len(stages)))
@@ -254,13 +260,14 @@ def write_scale_plot(result: Dict[str, Any], path: Path) -> None:
     for ax, stage in zip(axes.flat, stages):
         done = [r for r in result["rows"] if r["stage"] == stage and r["sweep"] == "gaussians" and "error" not in r]
         xs = [r["count"] for r in done]
-        ys = [r["seconds"] / r.get("instances", 1) for r in done]
+        ys = [seconds_per(r) for r in done]
         ax.loglog(xs, ys, "o-", color="#2980b9")
         e = result["summary"]["stages"][stage]
         ax.set_title(f"{stage}: ~count^{e['exponent']:.2f}" if "exponent" in e else stage, fontsize=9)
         ax.set_xlabel(e["count"], fontsize=8)
         ax.set_ylabel("s per instance" if stage == "registration" else "s", fontsize=8)
         ax.tick_params(labelsize=7)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     for ax in list(axes.flat)[len(stages):]:
         ax.axis("off")
     fig.tight_layout()
