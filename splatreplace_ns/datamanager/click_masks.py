@@ -27,7 +27,7 @@ MASKS_SOURCE_KEY = "instance_masks_source"
 """Where the instance masks come from: ``"clicks"`` (made from one click per instance and the base model) or
 ``"ground_truth"`` (the default when absent: a synthetic scene's, or a person's)."""
 CLICKS_DIGEST_KEY = "instance_masks_clicks"
-"""The fingerprint (``segment.clicks.clicks_digest``) of the clicks the masks were made from."""
+"""The fingerprint (``datamanager.clicks.clicks_digest``) of the clicks the masks were made from."""
 
 
 def index_path(data_dir: Path) -> Path:

@@ -4,8 +4,8 @@ A registration maps a source instance onto its class template: ``template ≈ T 
 4×4 rigid transform in the (normalised) world frame. With the template's ground-truth pose ``P_tpl``
 (object → world), the pose it implies for the source is ``T⁻¹ · P_tpl``; it is compared with the
 source's ground-truth pose ``P_src``: rotation error modulo the object's symmetry
-(``register.errors.rotation_error_deg``) and translation error relative to the object's size
-(``register.errors.translation_error_rel``). Ground-truth poses from the dataparser carry its scale
+(``poses.errors.rotation_error_deg``) and translation error relative to the object's size
+(``poses.errors.translation_error_rel``). Ground-truth poses from the dataparser carry its scale
 in their rotation block (``datamanager.dataparser.normalise_object_pose``); it is divided out here.
 """
 

@@ -20,7 +20,7 @@ rendered the same way.
 
 ``--compare-lifts`` compares the two ways of lifting the 2D instance masks to the Gaussians instead, on the same base
 model of each scene (random dev scenes of ``--seeds``, presets of ``--lift-presets``): the voting lift
-(``segment.voting``: each Gaussian takes the mask label with most of its blending weight over the training views)
+(``instances.lift``: each Gaussian takes the mask label with most of its blending weight over the training views)
 scored right after the base stage, and the contrastive stage scored after each of ``--lift-contrastive-steps``.
 Both are scored as above (test-view masks rendered from the selection of the scene's clicks, τ and min_alpha of
 the segmentation config) and timed: the vote, or the contrastive training steps. One JSON for all the scenes.
