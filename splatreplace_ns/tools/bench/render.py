@@ -113,7 +113,8 @@ def make_bench_scene(n: int, width: int, height: int, seed: int = 0, device: str
 # --------------------------------------------------------------------------- #
 
 
-def _proc_status_mb(field: str) -> Optional[float]:
+def proc_status_mb(field: str) -> Optional[float]:
+    """A memory field of /proc/self/status (VmRSS, VmHWM, ...) in MB; None where there is none."""
     try:
         with open("/proc/self/status") as f:
             for line in f:
@@ -124,7 +125,7 @@ def _proc_status_mb(field: str) -> Optional[float]:
     return None
 
 
-def _peak_tracker():
+def peak_tracker():
     """(start, peak) callables measuring the growth of the resident set.
 
     Linux: VmHWM after resetting it through /proc/self/clear_refs (the
@@ -133,12 +134,12 @@ def _peak_tracker():
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
-        use_proc = _proc_status_mb("VmHWM") is not None
+        use_proc = proc_status_mb("VmHWM") is not None
     except OSError:
         use_proc = False
     if use_proc:
-        base = _proc_status_mb("VmRSS")
-        return lambda: (_proc_status_mb("VmHWM") or 0.0) - (base or 0.0)
+        base = proc_status_mb("VmRSS")
+        return lambda: (proc_status_mb("VmHWM") or 0.0) - (base or 0.0)
     scale = 1 / (1024 * 1024) if sys.platform == "darwin" else 1 / 1024
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
     return lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale - base
@@ -173,7 +174,7 @@ def measure(n: int, width: int, height: int, backend: str, device: str, repeats:
         torch.cuda.reset_peak_memory_stats()
         mem0 = torch.cuda.memory_allocated() / 2**20
     else:
-        cpu_peak = _peak_tracker()
+        cpu_peak = peak_tracker()
     out = step()  # warm-up; also the pass whose peak memory is reported
     sync()
     peak_mb = torch.cuda.max_memory_allocated() / 2**20 - mem0 if cuda else cpu_peak()

@@ -109,19 +109,19 @@ def measure(spec: Dict[str, Any]) -> Dict[str, Any]:
     import torch
 
     from splatreplace_ns.tools.bench.register_scene import load_pipeline
-    from splatreplace_ns.tools.bench.render import _peak_tracker, _proc_status_mb
+    from splatreplace_ns.tools.bench.render import peak_tracker, proc_status_mb
     from splatreplace_ns.tools.bench.scale_stages import grow_model
 
     torch.set_num_threads(spec["threads"])
     pipeline = load_pipeline(Path(spec["config"]))
     labels = grow_model(pipeline, torch.load(spec["labels"]), spec["gaussians"])
     size = checked_size(spec["size"])
-    growth = _peak_tracker()
+    growth = peak_tracker()
     started = time.perf_counter()
     figures = RUNNERS[spec["stage"]](pipeline, labels, spec["views"], size)
     seconds = time.perf_counter() - started
     return {**{k: spec[k] for k in ("stage", "sweep", "gaussians", "views", "size")}, **figures,
-            "seconds": seconds, "peak_growth_mb": growth(), "peak_rss_mb": _proc_status_mb("VmHWM")}
+            "seconds": seconds, "peak_growth_mb": growth(), "peak_rss_mb": proc_status_mb("VmHWM")}
 
 
 def measure_isolated(spec: Dict[str, Any], timeout_s: float) -> Dict[str, Any]:
