@@ -29,7 +29,7 @@ from splatreplace_ns.tools.demo import DemoCommand
 from splatreplace_ns.export import ExportCommand
 from splatreplace_ns.method.masks_command import MasksCommand
 from splatreplace_ns.tools.sim import SimCommand
-from splatreplace_ns.user_errors import user_error_types
+from splatreplace_ns.user_errors import error_lines, user_error_types
 
 BenchCommands = Union[
     Annotated[BenchRenderConfig, tyro.conf.subcommand("render")],
@@ -70,7 +70,7 @@ def entrypoint() -> None:
     try:
         command.main()
     except user_error_types() as err:
-        print(f"error: {err}", file=sys.stderr)
+        print(error_lines(err), file=sys.stderr)
         raise SystemExit(2) from None
 
 

@@ -16,16 +16,22 @@ def user_error_types() -> tuple:
     return (ClickError, DatasetFormatError, OnnxModelError, SelectionError, FileNotFoundError)
 
 
+def error_lines(err: BaseException) -> str:
+    """A user error as the user reads it: ``error: <problem>``, one line per problem found."""
+    return "\n".join(f"error: {line}" for line in str(err).splitlines() or [type(err).__name__])
+
+
 def install_excepthook() -> None:
-    """Print an uncaught user error as ``error: <message>`` (the process still exits with status 1); every other
-    exception keeps its traceback. Installed once; ``ns-train`` imports the method's config, which calls this."""
+    """Print an uncaught user error as :func:`error_lines` (the process still exits with status 1); every other
+    exception keeps its traceback. Installed once, by our method's pipeline when it is made (``ns-train``,
+    ``ns-eval``, ``ns-viewer`` on our runs), so that other methods keep nerfstudio's own handling."""
     previous = sys.excepthook
     if getattr(previous, "splatreplace_user_errors", False):
         return
 
     def hook(kind, value, traceback) -> None:
         if isinstance(value, user_error_types()):
-            print(f"error: {value}", file=sys.stderr)
+            print(error_lines(value), file=sys.stderr)
         else:
             previous(kind, value, traceback)
 

@@ -127,7 +127,7 @@ def test_bad_depth_zero_is_named(tmp_path):
     meta = write_dataset(tmp_path)
     meta["depth_zero"] = "sky"
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
-    with pytest.raises(DatasetFormatError, match=r"transforms\.json: 'depth_zero' is 'sky'"):
+    with pytest.raises(DatasetFormatError, match=r"transforms\.json: depth_zero: Input should be 'unknown' or 'far' \(got 'sky'\)"):
         setup_dm(tmp_path)
 
 

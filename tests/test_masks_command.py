@@ -418,10 +418,10 @@ def test_ns_train_without_masks_or_clicks_stops_before_training(tmp_path):
     strip_ground_truth(scene, capture)
     clicks = json.loads((capture / "clicks.json").read_text())
     (capture / "clicks.json").write_text(json.dumps(clicks[:1] + [{**clicks[1], "file_path": "images/9999.png"}]))
-    with pytest.raises(DatasetFormatError, match=r"click 1 names images/9999.png, which is not a training image"):
+    with pytest.raises(DatasetFormatError, match=r"click 1 names images/9999.png, which is not a frame"):
         setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
     (capture / "clicks.json").unlink()
-    with pytest.raises(ValueError, match=r"no instance masks .*splatreplace masks .* --viewer"):
+    with pytest.raises(FileNotFoundError, match=r"no instance masks .*splatreplace masks .* --viewer"):
         setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10))
     assert not (capture / "masks").exists()
     setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 0))  # the base stage alone needs no masks

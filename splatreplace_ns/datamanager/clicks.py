@@ -13,7 +13,8 @@ import numpy as np
 
 from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.datamanager.files import write_atomically
-from splatreplace_ns.datamanager.validate import read_json
+from splatreplace_ns.datamanager.file_checks import read_json
+from splatreplace_ns.datamanager.schema import click_problems
 
 
 @dataclass(frozen=True)
@@ -59,46 +60,66 @@ def resized_pixel(xy: Tuple[float, float], factor: float) -> Tuple[float, float]
     return (float(xy[0]) + 0.5) * factor - 0.5, (float(xy[1]) + 0.5) * factor - 0.5
 
 
-def load_clicks(path: Path) -> List[Click]:
-    """Reads ``[{"file_path", "xy": [u, v], "class"}, ...]``; errors (``DatasetFormatError``) name the file and the
-    entry."""
+def read_clicks(path: Path) -> Tuple[List[Click], List[str]]:
+    """``[{"file_path", "xy": [u, v], "class"}, ...]`` checked click by click against the schema
+    (:func:`~splatreplace_ns.datamanager.schema.click_problems`).
+
+    Returns:
+        (the valid clicks, one line per problem naming the file and the click).
+    """
     entries = read_json(path, "clicks file")
     if not isinstance(entries, list):
-        raise DatasetFormatError(f"{path}: expected a list of clicks, got {type(entries).__name__}")
-    clicks = []
+        return [], [f"{path}: expected a list of clicks, got {type(entries).__name__}"]
+    if not entries:
+        return [], [f"{path}: no clicks; give one per instance"]
+    clicks, problems = [], []
     for i, entry in enumerate(entries):
-        if not isinstance(entry, dict) or "file_path" not in entry or "xy" not in entry:
-            raise DatasetFormatError(f"{path}: click {i} needs 'file_path' and 'xy' ([u, v] pixel)")
-        xy = entry["xy"]
-        if not (isinstance(xy, (list, tuple)) and len(xy) == 2
-                and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in xy)):
-            raise DatasetFormatError(f"{path}: click {i} has 'xy' = {xy!r}; expected [u, v] pixel coordinates")
-        if not all(math.isfinite(c) for c in xy):
-            raise DatasetFormatError(f"{path}: click {i} has 'xy' = {list(xy)}; pixel coordinates must be finite numbers")
-        clicks.append(Click(i, str(entry["file_path"]), (float(xy[0]), float(xy[1])), str(entry.get("class", "object"))))
-    if not clicks:
-        raise DatasetFormatError(f"{path}: no clicks; give one per instance")
+        lines = click_problems(i, entry)
+        problems += [f"{path}: {line}" for line in lines]
+        if not lines:
+            clicks.append(Click(i, entry["file_path"], (float(entry["xy"][0]), float(entry["xy"][1])),
+                                entry.get("class", "object")))
+    return clicks, problems
+
+
+def load_clicks(path: Path) -> List[Click]:
+    """The clicks of :func:`read_clicks`, or one ``DatasetFormatError`` with every problem found."""
+    clicks, problems = read_clicks(path)
+    if problems:
+        raise DatasetFormatError(problems)
     return clicks
 
 
-def check_clicks(clicks: List[Click], path: Path, image_sizes: Dict[str, Tuple[int, int]], allowed: str) -> None:
-    """Every click names one of the allowed images and lies on a pixel of it; else one ``DatasetFormatError`` that
-    names the click.
+def click_place_problems(clicks: List[Click], image_sizes: Dict[str, Tuple[int, int]], allowed: str) -> List[str]:
+    """One line for each click that names none of the allowed images or lies off its pixels.
 
     Args:
-        clicks: from :func:`load_clicks`; path: the clicks file (for messages).
-        image_sizes: {image file name: (width, height) of the file}: the images a click may name (clicks are pixels
-            of the image files, whatever size the run reads them at).
+        clicks: from :func:`load_clicks`.
+        image_sizes: {image file name: (width, height) of the file, or None where it is unknown (a file that did
+            not decode: its own problem)}: the images a click may name (clicks are pixels of the image files,
+            whatever size the run reads them at).
         allowed: what those images are, for the message (e.g. "a training image of DIR/transforms.json").
     """
+    lines = []
     for click in clicks:
         name = Path(click.file_path).name
         if name not in image_sizes:
-            raise DatasetFormatError(f"{path}: click {click.index} names {click.file_path}, which is not {allowed}")
+            lines.append(f"click {click.index} names {click.file_path}, which is not {allowed}")
+            continue
+        if image_sizes[name] is None:
+            continue
         width, height = image_sizes[name]
         if pixel_index(click.xy[0], click.xy[1], width, height) is None:
-            raise DatasetFormatError(f"{path}: click {click.index} at {list(click.xy)} is outside its image "
-                                     f"{click.file_path} ({width}x{height}; u is the column, v the row)")
+            lines.append(f"click {click.index} at {list(click.xy)} is outside its image {click.file_path} "
+                         f"({width}x{height}; u is the column, v the row)")
+    return lines
+
+
+def check_clicks(clicks: List[Click], path: Path, image_sizes: Dict[str, Tuple[int, int]], allowed: str) -> None:
+    """:func:`click_place_problems` as one ``DatasetFormatError`` (a line per click) naming ``path``."""
+    problems = click_place_problems(clicks, image_sizes, allowed)
+    if problems:
+        raise DatasetFormatError([f"{path}: {line}" for line in problems])
 
 
 def clicks_file_appeared(path: Path) -> Callable[[], bool]:

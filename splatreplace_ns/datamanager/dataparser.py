@@ -25,7 +25,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.datamanager.click_masks import MASKS_SOURCE_KEY, with_click_masks
 from splatreplace_ns.datamanager.errors import DatasetFormatError
-from splatreplace_ns.datamanager.validate import SPLIT_LISTS, check_transforms, read_json, with_both_eval_splits
+from splatreplace_ns.datamanager.validate import SPLIT_LISTS, check_dataset, with_both_eval_splits
 
 __all__ = ["SPLIT_LISTS", "DatasetFormatError", "SplatReplaceDataParser", "SplatReplaceDataParserConfig",
            "normalise_object_pose", "saved_to_normalised"]
@@ -122,7 +122,7 @@ class SplatReplaceDataParser(Nerfstudio):
                 f"{transforms_path}: file not found (expected a nerfstudio transforms.json, or a COLMAP model in "
                 "sparse/0)"
             )
-        meta = check_transforms(read_json(transforms_path, "transforms.json"), transforms_path)
+        meta = self._checked_meta(transforms_path)
         meta = with_click_masks(meta, transforms_path.parent)  # masks made from clicks live beside the file
         if "depth_unit_scale_factor" in meta:
             self.config.depth_unit_scale_factor = float(meta["depth_unit_scale_factor"])
@@ -140,47 +140,41 @@ class SplatReplaceDataParser(Nerfstudio):
             meta, data_dir, outputs.image_filenames, transforms_path
         )
         outputs.metadata["instances"] = self._instances(meta, outputs, data_dir)
-        outputs.metadata["instance_masks_source"] = self._instance_masks_source(meta, transforms_path)
-        outputs.metadata["depth_zero_is_far"] = self._depth_zero_is_far(meta, transforms_path)
+        outputs.metadata["instance_masks_source"] = self._instance_masks_source(meta)
+        outputs.metadata["depth_zero_is_far"] = self._depth_zero_is_far(meta)
         return outputs
 
-    @staticmethod
-    def _instance_masks_source(meta: Dict, transforms_path: Path) -> str:
-        """Where the instance masks come from: ``"ground_truth"`` (default) or ``"clicks"`` (``splatreplace masks``
-        or ``ns-train`` made them; evaluation then scores no segmentation against them)."""
-        value = meta.get(MASKS_SOURCE_KEY, "ground_truth")
-        if value not in ("ground_truth", "clicks"):
-            raise DatasetFormatError(
-                f"{transforms_path}: 'instance_masks_source' is {value!r}; expected 'ground_truth' or 'clicks'"
-            )
-        return value
+    def _checked_meta(self, transforms_path: Path) -> Dict:
+        """``transforms.json`` checked with its files and ``clicks.json`` (:func:`check_dataset`), once per parser:
+        nerfstudio parses each split with the same parser, and decoding every file again would only cost time."""
+        cached = getattr(self, "_checked", None)
+        if cached is None or cached[0] != transforms_path:
+            cached = (transforms_path, check_dataset(transforms_path, transforms_path.parent / "clicks.json"))
+            self._checked = cached
+        return cached[1]
 
     @staticmethod
-    def _depth_zero_is_far(meta: Dict, transforms_path: Path) -> bool:
+    def _instance_masks_source(meta: Dict) -> str:
+        """Where the instance masks come from: ``"ground_truth"`` (default) or ``"clicks"`` (``splatreplace masks``
+        or ``ns-train`` made them; evaluation then scores no segmentation against them)."""
+        return meta.get(MASKS_SOURCE_KEY, "ground_truth")
+
+    @staticmethod
+    def _depth_zero_is_far(meta: Dict) -> bool:
         """What depth 0 means: ``"unknown"`` (default: a sensor's hole, no supervision there) or ``"far"`` (the
         ray hits no surface, e.g. the sky: supervised as infinitely far, inverse depth 0)."""
-        value = meta.get("depth_zero", "unknown")
-        if value not in ("unknown", "far"):
-            raise DatasetFormatError(f"{transforms_path}: 'depth_zero' is {value!r}; expected 'unknown' or 'far'")
-        return value == "far"
+        return meta.get("depth_zero", "unknown") == "far"
 
     @staticmethod
     def _instance_mask_filenames(
         meta: Dict, data_dir: Path, image_filenames: List[Path], transforms_path: Path
     ) -> Optional[List[Path]]:
         frames = meta.get("frames", [])
-        with_masks = [f for f in frames if "instance_mask_path" in f]
-        if not with_masks:
+        if not any("instance_mask_path" in f for f in frames):  # the schema: every frame has one, or none
             return None
-        if len(with_masks) != len(frames):
-            raise DatasetFormatError(
-                f"{transforms_path}: {len(frames) - len(with_masks)} of {len(frames)} frames have no "
-                "'instance_mask_path'; give one for every frame or for none"
-            )
-        # nerfstudio may point images at a downscaled folder (images_2/...), so match by file name.
+        # nerfstudio may point images at a downscaled folder (images_2/...), so match by file name (unique: the
+        # schema's rule)
         by_name = {Path(f["file_path"]).name: data_dir / f["instance_mask_path"] for f in frames}
-        if len(by_name) != len(frames):
-            raise DatasetFormatError(f"{transforms_path}: image file names must be unique to pair them with masks")
         return [by_name[Path(p).name] for p in image_filenames]
 
     @staticmethod

@@ -14,7 +14,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 
 from splatreplace_ns.datamanager.errors import DatasetFormatError
-from splatreplace_ns.datamanager.validate import mask_size_problem
+from splatreplace_ns.datamanager.file_checks import mask_size_problem
 
 
 def read_instance_mask(path: Path, height: int, width: int, valid_ids: set | None = None) -> torch.Tensor:

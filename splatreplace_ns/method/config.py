@@ -15,9 +15,6 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from splatreplace_ns.method.cpu_allocator import keep_freed_buffers
 from splatreplace_ns.method.pipeline import SplatReplacePipelineConfig
-from splatreplace_ns.user_errors import install_excepthook
-
-install_excepthook()  # ns-train: a bad input is one line naming the file, not a traceback
 
 
 @dataclass
@@ -95,7 +92,9 @@ def splat_replace_trainer_config(
                 ),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        # the viewer's click controls write into the dataset (masks, clicks.json): this machine only, unless the
+        # user opens it with --viewer.websocket-host 0.0.0.0
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",
     )
 

@@ -24,11 +24,11 @@ import tyro
 from typing_extensions import Annotated
 
 from splatreplace_ns.datamanager.click_masks import index_path
-from splatreplace_ns.datamanager.clicks import Click, check_clicks, clicks_digest, load_clicks, write_clicks_json
+from splatreplace_ns.datamanager.clicks import Click, clicks_digest, load_clicks, write_clicks_json
 from splatreplace_ns.datamanager.colmap_input import colmap_to_transforms
-from splatreplace_ns.datamanager.validate import SPLIT_LISTS
+from splatreplace_ns.datamanager.files import check_writable
 from splatreplace_ns.datamanager.mask_writer import write_dataset_masks
-from splatreplace_ns.datamanager.validate import check_transforms, image_size, read_json
+from splatreplace_ns.datamanager.validate import SPLIT_LISTS, check_dataset
 from splatreplace_ns.instances.frames import FrameCameras, FrameRenders, frame_cameras, render_frames
 from splatreplace_ns.instances.geometric_config import Clustering, ClusteringConfig
 from splatreplace_ns.instances.masks2d import BorderConfig
@@ -70,6 +70,9 @@ class MasksCommand:
     are written to clicks.json (an existing one is kept as clicks.json.before-viewer)."""
     viewer_port: int = 7007
     """Port of the viewer (with --viewer)."""
+    viewer_host: str = "127.0.0.1"
+    """Address the viewer listens on (with --viewer). Its controls write into the dataset, so only this machine
+    reaches it by default; 0.0.0.0 opens it to the network."""
     skip_bad_clicks: bool = False
     """Report a click that makes no instance on its own (on empty space, a supporting plane, loose fuzz, or an
     object the base model holds too sparsely) and make the masks of the others, instead of stopping. Each
@@ -106,15 +109,16 @@ def _transforms(data: Path) -> Path:
     return transforms
 
 
-def _clicks(cfg: MasksCommand) -> List[Click]:
-    path = cfg.clicks or cfg.data / "clicks.json"
-    if not path.exists():
+def _clicks_path(cfg: MasksCommand) -> Path:
+    """The clicks file: it must exist unless the clicks come from the viewer."""
+    path = Path(cfg.clicks or cfg.data / "clicks.json")
+    if not cfg.viewer and not path.exists():
         raise FileNotFoundError(
             f"{path}: no clicks. `splatreplace masks` needs clicks.json with one click per instance "
             '([{"file_path": "images/0003.png", "xy": [u, v], "class": "chair"}, ...]), or --viewer to click the '
             "instances in nerfstudio's viewer on the base model"
         )
-    return load_clicks(path)
+    return path
 
 
 def clicks_from_viewer(
@@ -135,7 +139,7 @@ def clicks_from_viewer(
         del pipeline.selection_controls
     pipeline.mask_click_controls = controls
     viewer = Viewer(
-        ViewerConfig(websocket_port=cfg.viewer_port, num_rays_per_chunk=1 << 15),
+        ViewerConfig(websocket_port=cfg.viewer_port, websocket_host=cfg.viewer_host, num_rays_per_chunk=1 << 15),
         log_filename=Path(base.config_path).parent / "viewer_log_filename.txt",
         datapath=Path(cfg.data), pipeline=pipeline, train_lock=threading.Lock(),
     )
@@ -160,12 +164,11 @@ def make_masks(cfg: MasksCommand) -> Dict:
     data = Path(cfg.data)
     transforms = _transforms(data)
     sam = OnnxSam(cfg.sam_encoder, cfg.sam_decoder) if cfg.backend == "onnx-sam" else None
-    clicks = None if cfg.viewer else _clicks(cfg)  # bad clicks are reported before the base stage trains
-    meta = check_transforms(read_json(transforms, "transforms.json"), transforms)
-    if clicks is not None:
-        check_clicks(clicks, cfg.clicks or data / "clicks.json",
-                     {Path(f["file_path"]).name: image_size(data / f["file_path"]) for f in meta["frames"]},
-                     f"a frame of {transforms}")
+    clicks_path = _clicks_path(cfg)
+    # every problem of the dataset and its clicks is reported before the base stage trains
+    check_dataset(transforms, None if cfg.viewer else clicks_path)
+    check_writable(data, "the instance masks (instance_masks/)" + (" and clicks.json" if cfg.viewer else ""))
+    clicks = None if cfg.viewer else load_clicks(clicks_path)
 
     start = time.perf_counter()
     if cfg.load_config:

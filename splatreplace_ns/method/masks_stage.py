@@ -16,7 +16,9 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.datamanager.clicks import check_clicks, clicks_digest, clicks_file_appeared, load_clicks
-from splatreplace_ns.datamanager.validate import image_size
+from splatreplace_ns.datamanager.click_masks import MASKS_DIR
+from splatreplace_ns.datamanager.file_checks import image_size
+from splatreplace_ns.datamanager.files import check_writable
 
 
 class MasksStage:
@@ -93,9 +95,11 @@ class MasksStage:
         outputs = self.datamanager.train_dataparser_outputs
         frame_cameras(self.transforms_path(), outputs.dataparser_transform, outputs.dataparser_scale,
                       self.datamanager.image_downscale)
+        # the masks (and clicks made in the viewer) are written beside transforms.json after the base stage
+        check_writable(data, f"the instance masks made from the clicks ({MASKS_DIR}/)")
         if not self.clicks_path().exists():
             if self.config.segmentation.interactive == "never":
-                raise ValueError(self._no_clicks_message())
+                raise FileNotFoundError(self._no_clicks_message())
             # whether the viewer runs is known only once the trainer sets it up (get_training_callbacks); the
             # controls must exist before, for the viewer to find them
             self._mask_clicks_from_viewer = True

@@ -36,6 +36,7 @@ from splatreplace_ns.poses.gate import ReplacementGateConfig
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.template.revert import RevertGateConfig
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
+from splatreplace_ns.user_errors import install_excepthook
 
 
 @dataclass
@@ -81,6 +82,7 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
     config: SplatReplacePipelineConfig
 
     def __init__(self, config: SplatReplacePipelineConfig, device: str, *args, **kwargs):
+        install_excepthook()  # a bad input is one line per problem naming the file, not a traceback (our runs only)
         super().__init__(config, device, *args, **kwargs)
         self.selection: Optional[InstanceSelection] = None
         self.segmentation_report: Dict = {}
@@ -149,7 +151,10 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
             if controls is not None:
                 controls.render_lock = self._train_lock
         if self._mask_clicks_from_viewer and not self.selection_controls.viewer_running:
-            raise ValueError(self._no_clicks_message() + " (the viewer is off in this run: --vis viewer turns it on)")
+            raise FileNotFoundError(self._no_clicks_message() + " (the viewer is off in this run: --vis viewer turns it on)")
+        if (self.test_mode == "val" and self.config.contrastive_iterations > 0 and not self._mask_clicks_from_viewer
+                and not self.clicks_path().exists() and not self.should_wait_for_viewer()):
+            raise FileNotFoundError(self.no_segmentation_clicks_message())  # now, not after the base stage
         callbacks = super().get_training_callbacks(training_callback_attributes)
         callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_iteration))
         return callbacks

@@ -204,6 +204,10 @@ class SegmentationStage:
             return has_viewer
         return has_viewer and not self.clicks_path().exists()
 
+    def no_segmentation_clicks_message(self) -> str:
+        return (f"{self.clicks_path()}: no clicks for the segmentation stage. Give one click per instance in "
+                "clicks.json (see README) or run with the viewer (--vis viewer) to click them")
+
     def run_segmentation(self) -> Dict:
         """Selects the instances (clicks.json or viewer), renders their masks, carves the background."""
         start = time.perf_counter()
@@ -223,10 +227,7 @@ class SegmentationStage:
         if not from_viewer:
             path = self.clicks_path()
             if not path.exists():
-                raise FileNotFoundError(
-                    f"{path}: no clicks for the segmentation stage. Give one click per instance in clicks.json "
-                    "(see README) or run with the viewer to click them"
-                )
+                raise FileNotFoundError(self.no_segmentation_clicks_message())
             for click in load_clicks(path):
                 try:
                     self.add_click(click)

@@ -70,6 +70,10 @@ class DemoCommand:
 
         start = time.perf_counter()
         data = self.data
+        if data is not None and (Path(data) / "transforms.json").exists():  # a COLMAP model: the dataparser converts
+            from splatreplace_ns.datamanager.validate import check_dataset
+
+            check_dataset(Path(data) / "transforms.json", Path(data) / "clicks.json")  # before anything trains
         if data is None:
             data = self.out / f"{self.preset}_{self.res}"
             if not is_current_scene(data):
