@@ -241,3 +241,45 @@ def test_every_problem_is_one_error_line_without_a_traceback(valid, tmp_path, to
     errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
     assert len(errors) == 2, result.stderr[-2000:]
     assert "'fl_x' is given neither" in errors[0] and "images/0003.png: not a readable image" in errors[1], errors
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """Makes a folder read-only for this process: permission bits for a user, a read-only bind mount for root
+    (to whom permission bits mean nothing). Yields the function; unmounts afterwards."""
+    import os
+
+    mounted = []
+
+    def make(folder: Path) -> None:
+        if os.geteuid() != 0:
+            folder.chmod(0o555)
+            return
+        if subprocess.run(["mount", "--bind", str(folder), str(folder)], capture_output=True).returncode == 0:
+            mounted.append(folder)
+            if subprocess.run(["mount", "-o", "remount,ro,bind", str(folder)], capture_output=True).returncode == 0:
+                return
+        pytest.skip("root without the right to mount: no way to make a folder read-only here")
+
+    yield make
+    for folder in mounted:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_a_folder_the_run_cannot_write_is_refused_before_training(valid, tmp_path, read_only):
+    from splatreplace_ns.datamanager.files import folder_is_writable
+    from splatreplace_ns.method.masks_command import MasksCommand, make_masks
+    from splatreplace_ns.method.train import make_trainer_config, setup_trainer
+    from splatreplace_ns.tools.sim.capture import strip_ground_truth
+
+    capture = tmp_path / "capture"
+    strip_ground_truth(valid, capture)  # no masks: the run makes them from the clicks and writes them here
+    assert folder_is_writable(capture)
+    read_only(capture)
+    assert not folder_is_writable(capture)
+    with pytest.raises(DatasetFormatError, match=r"capture: cannot write here, and this run writes the instance masks"):
+        setup_trainer(make_trainer_config(capture, tmp_path / "runs", 10, 10, 10))
+    with pytest.raises(DatasetFormatError, match=r"capture: cannot write here"):
+        make_masks(MasksCommand(capture, base_iterations=10, output_dir=tmp_path / "masks_runs"))
+    assert not (tmp_path / "masks_runs").exists(), "a base model was trained before the refusal"
+    setup_trainer(make_trainer_config(capture, tmp_path / "base_only", 10))  # the base stage alone writes nothing
