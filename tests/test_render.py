@@ -21,6 +21,7 @@ import math
 import sys
 import types
 
+import gsplat.cuda._torch_impl as gsplat_ref  # a pinned requirement: failing to import it must fail the tests
 import pytest
 import torch
 
@@ -33,8 +34,6 @@ from splatreplace_ns.render import (
 )
 from splatreplace_ns.render.rasterize import BACKEND_ENV_VAR, resolve_backend
 from splatreplace_ns.render.workspace import release_workspace
-
-gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
 
 F64 = torch.float64
 
