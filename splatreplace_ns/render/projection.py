@@ -18,6 +18,7 @@ so it can never go negative through cancellation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -80,6 +81,7 @@ def project_gaussians(
     near: float = 0.01,
     far: float = 1e10,
     eps2d: float = EPS2D,
+    cull: Optional[Tensor] = None,
 ) -> ProjectedGaussians:
     """Project N Gaussians (world space) into one camera.
 
@@ -87,6 +89,7 @@ def project_gaussians(
         means: [N, 3]; quats: [N, 4] wxyz (any norm); scales: [N, 3] linear.
         viewmat: [4, 4] world -> camera (OpenCV convention).
         K: [3, 3] intrinsics.
+        cull: optional [N] bool, Gaussians culled wherever they project (radius 0).
     """
     dtype = means.dtype
     viewmat = viewmat.to(dtype)
@@ -158,6 +161,8 @@ def project_gaussians(
             & (my - radius < height)
         )
         visible = in_depth & inside & torch.isfinite(radius) & torch.isfinite(det)
+        if cull is not None:
+            visible &= ~cull
         radius = radius.clamp_max(float(2**30))
         radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
 

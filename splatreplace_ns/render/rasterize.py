@@ -216,6 +216,9 @@ def rasterize(
         absgrad: gsplat only: also accumulate ``means2d.absgrad`` (what
             splatfacto's densification uses); the torch path has plain grads.
 
+    The torch path culls a Gaussian with a NaN or infinite parameter (radius 0,
+    zero gradients): the image is that of the finite Gaussians alone.
+
     Both backends follow gsplat's "classic" rasterisation: EWA projection with
     a 0.3 px^2 low-pass, ``alpha = min(0.999, o exp(-sigma))`` (gsplat's clamp),
     pairs below alpha 1/255 skipped, front-to-back compositing stopped before
@@ -268,13 +271,46 @@ def _render_empty(means, quats, scales, opacities, colors, D, bg, width, height,
     )
 
 
+def non_finite_gaussians(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, sh_degree: Optional[int]
+) -> Optional[Tensor]:
+    """The Gaussians with a NaN or an infinite parameter, or None when there is none (the common case: one
+    sum per parameter and one check).
+
+    Args:
+        means [N, 3], quats [N, 4], scales [N, 3], opacities [N]; colors [N, D], or [N, K, 3] SH coefficients of
+        which the first ``(sh_degree + 1)^2`` are read.
+    Returns:
+        [N] bool (True: some parameter is not finite), or None.
+    """
+    if sh_degree is not None:
+        colors = colors[:, : (sh_degree + 1) ** 2]
+    params = (means, quats, scales, opacities, colors)
+    with torch.no_grad():
+        # a NaN or an infinity makes the total non-finite; finite values whose sum overflows only cost the
+        # exact test below
+        total = sum(t.sum() for t in params)
+        if bool(torch.isfinite(total)):
+            return None
+        ok = torch.isfinite(opacities)
+        for t in (means, quats, scales, colors):
+            ok &= torch.isfinite(t).flatten(1).all(1)
+    return ~ok
+
+
 def _rasterize_torch(
     means, quats, scales, opacities, colors, viewmat, K, width, height, sh_degree, bg, near, far, absgrad=False
 ) -> RenderOutput:
     dtype = means.dtype
     viewmat = viewmat.to(device=means.device, dtype=dtype)
     K = K.to(device=means.device, dtype=dtype)
-    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far, EPS2D)
+    bad = non_finite_gaussians(means, quats, scales, opacities, colors, sh_degree)
+    if bad is not None:  # culled like Gaussians outside the view, with zero gradients
+        means, quats, scales, opacities, colors = (
+            torch.where(bad.view((-1,) + (1,) * (t.dim() - 1)), torch.zeros((), dtype=t.dtype, device=t.device), t)
+            for t in (means, quats, scales, opacities, colors)
+        )
+    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far, EPS2D, cull=bad)
 
     # The returned means2d is used downstream, so its .grad gets populated.
     means2d = proj.means2d.unsqueeze(0)  # [1, N, 2]
