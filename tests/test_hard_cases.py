@@ -117,3 +117,66 @@ def test_every_gaussian_non_finite_renders_an_empty_image():
     out, maps, leaves = _render_with_grads(params, viewmat, K, W, H, None, weights)
     assert (maps == 0).all() and (out.radii == 0).all()
     assert all(torch.isfinite(leaves[k].grad).all() for k in PARAMS)
+
+
+# --------------------------------------------------------------------------- training: a non-finite step
+
+
+def test_a_non_finite_step_updates_nothing_and_training_goes_on(tmp_path, capsys):
+    from splatreplace_ns.method.train import make_trainer_config, run_training
+    from splatreplace_ns.tools.sim import make_scene
+
+    data = make_scene("tiny", tmp_path / "scene", n_train=6, n_test=2, workers=1).parent
+    steps, nan_loss_step, nan_grad_step = 9, 3, 6
+    config = make_trainer_config(data, tmp_path / "runs", base_iterations=steps)
+    snapshots = {}
+
+    def before_train(trainer):
+        model = trainer.pipeline.model
+        get_loss_dict = model.get_loss_dict
+
+        def poisoned_loss(outputs, batch, metrics_dict=None):
+            losses = get_loss_dict(outputs, batch, metrics_dict)
+            if model.step == nan_loss_step:
+                losses["main_loss"] = losses["main_loss"] * NAN
+            return losses
+
+        model.get_loss_dict = poisoned_loss
+        # a finite loss whose backward gives one NaN gradient entry
+        model.gauss_params["features_dc"].register_hook(
+            lambda g: torch.where(torch.arange(len(g))[:, None] == 0, NAN, g) if model.step == nan_grad_step else g
+        )
+        snapshots[-1] = _state(trainer)
+
+    def after_step(trainer, step):
+        snapshots[step] = _state(trainer)
+
+    trainer = run_training(config, after_step=after_step, before_train=before_train)
+    model = trainer.pipeline.model
+
+    assert trainer.skipped_steps == [nan_loss_step, nan_grad_step]
+    for step in range(steps):
+        before, after = snapshots[step - 1], snapshots[step]
+        for name in before:
+            assert torch.isfinite(after[name]).all(), (step, name)
+            unchanged = torch.equal(before[name], after[name])
+            if step in trainer.skipped_steps:
+                assert unchanged, (step, name)  # the skipped step updated nothing
+            elif name in ("means", "features_dc", "opacities", "scales"):
+                assert not unchanged, (step, name)  # every other step trained
+    # the optimizers' state did not count the skipped steps and holds no NaN
+    for name in ("means", "features_dc"):
+        optimizer = trainer.optimizers.optimizers[name]
+        state = optimizer.state[optimizer.param_groups[0]["params"][0]]
+        assert int(state["step"]) == steps - 2
+        assert torch.isfinite(state["exp_avg"]).all() and torch.isfinite(state["exp_avg_sq"]).all()
+    assert torch.isfinite(model.strategy_state["grad2d"]).all()  # densification statistics
+    out = " ".join(capsys.readouterr().out.split())
+    assert f"step {nan_loss_step}: the loss or a gradient is not finite; this step updates nothing" in out
+    assert out.count("this step updates nothing") == 1  # warned once
+    assert f"2 step(s) skipped because the loss or a gradient was not finite: {nan_loss_step}, {nan_grad_step}" in out
+
+
+def _state(trainer):
+    return {k: v.detach().clone() for k, v in trainer.pipeline.model.gauss_params.items()
+            if k in ("means", "features_dc", "features_rest", "opacities", "scales", "quats")}

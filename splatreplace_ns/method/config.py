@@ -8,12 +8,15 @@ from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from dataclasses import dataclass, field
-from typing import Type
+from typing import List, Type
 
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
+from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.method.cpu_allocator import keep_freed_buffers
+from splatreplace_ns.method.finite_steps import FiniteStepGradScaler
 from splatreplace_ns.method.pipeline import SplatReplacePipelineConfig
 
 
@@ -25,8 +28,9 @@ class SplatReplaceTrainerConfig(TrainerConfig):
 
 
 class SplatReplaceTrainer(Trainer):
-    """nerfstudio's Trainer; the run length follows the stage schedule, and on CPU large freed buffers are
-    kept for reuse (:mod:`splatreplace_ns.method.cpu_allocator`)."""
+    """nerfstudio's Trainer; the run length follows the stage schedule, on CPU large freed buffers are kept for
+    reuse (:mod:`splatreplace_ns.method.cpu_allocator`), and an iteration whose loss or gradients are not finite
+    updates nothing (:mod:`splatreplace_ns.method.finite_steps`): its step is listed in ``skipped_steps``."""
 
     def __init__(self, config: SplatReplaceTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         if config.max_num_iterations <= 0:
@@ -34,6 +38,30 @@ class SplatReplaceTrainer(Trainer):
         if not torch.cuda.is_available() or config.machine.device_type == "cpu":
             keep_freed_buffers()  # CPU steps reuse their large gradient buffers instead of re-faulting them
         super().__init__(config, local_rank, world_size)
+        self.grad_scaler = FiniteStepGradScaler(enabled=self.use_grad_scaler)
+        self.skipped_steps: List[int] = []
+
+    def setup_optimizers(self) -> Optimizers:
+        optimizers = super().setup_optimizers()
+        self.grad_scaler.watch(optimizers.optimizers.values())
+        return optimizers
+
+    def train_iteration(self, step: int):
+        out = super().train_iteration(step)
+        if self.grad_scaler.skipped:
+            self.skipped_steps.append(step)
+            if len(self.skipped_steps) == 1:
+                CONSOLE.print(f"[bold yellow]step {step}: the loss or a gradient is not finite; this step updates "
+                              "nothing (1 step skipped so far; the total is reported at the end)")
+        return out
+
+    def train(self) -> None:
+        super().train()
+        if self.skipped_steps:
+            steps = ", ".join(str(s) for s in self.skipped_steps[:10])
+            steps += ", ..." if len(self.skipped_steps) > 10 else ""
+            CONSOLE.print(f"[bold yellow]{len(self.skipped_steps)} step(s) skipped because the loss or a gradient was "
+                          f"not finite: {steps}")
 
 
 @dataclass

@@ -258,6 +258,11 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
                 group["params"] = [current]
 
     def step_post_backward(self, step):
+        # A step the trainer skipped (its loss or gradients not finite) adds nothing to the densification statistics.
+        means2d = getattr(self, "info", {}).get("means2d")
+        for grad in (getattr(means2d, "grad", None), getattr(means2d, "absgrad", None)):
+            if grad is not None:
+                grad.nan_to_num_(0.0, 0.0, 0.0)
         # Densification and pruning belong to the base stage and to fine-tuning (of the replaced scene, or of the
         # segmented one when nothing was replaced); the contrastive stage keeps the Gaussian set fixed.
         if self.stage == "base":
