@@ -180,3 +180,39 @@ def test_a_non_finite_step_updates_nothing_and_training_goes_on(tmp_path, capsys
 def _state(trainer):
     return {k: v.detach().clone() for k, v in trainer.pipeline.model.gauss_params.items()
             if k in ("means", "features_dc", "features_rest", "opacities", "scales", "quats")}
+
+
+# --------------------------------------------------------------------------- registration: too few Gaussians
+
+
+def _blob(n: int, seed: int, offset=0.0) -> InstanceGaussians:
+    g = torch.Generator().manual_seed(seed)
+    return InstanceGaussians(
+        means=torch.rand(n, 3, generator=g) + offset,
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        scales=torch.full((n, 3), 0.05),
+        opacities=torch.full((n,), 0.9),
+        colors=torch.rand(n, 3, generator=g),
+    )
+
+
+def _refused(result, n_source, n_template):
+    assert not result.success
+    assert f"too few Gaussians (source {n_source}, template {n_template})" in result.message
+    assert np.array_equal(result.transform, np.eye(4))
+    assert result.proposed_transform is None
+
+
+@pytest.mark.parametrize("method", ["ours", "fpfh"])
+def test_an_instance_with_fewer_than_three_gaussians_is_refused_with_the_reason(method):
+    cfg = RegistrationConfig(image_size=(64, 48), method=method)
+    big = _blob(300, seed=1)
+    for n in (0, 1, 2):
+        _refused(register_instance(_blob(n, seed=2), big, cfg), n, 300)
+        _refused(register_instance(big, _blob(n, seed=2), cfg), 300, n)
+    # a class whose largest instance is too small (down to empty instances): refused, nothing raises
+    for counts in ((2, 1), (0, 0)):
+        instances = {i + 1: _blob(c, seed=i, offset=3.0 * i) for i, c in enumerate(counts)}
+        results = register_instances(instances, {i: "blob" for i in instances}, cfg)
+        assert results[1].success and np.array_equal(results[1].transform, np.eye(4))  # the template itself
+        _refused(results[2], counts[1], counts[0])

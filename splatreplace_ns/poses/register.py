@@ -58,6 +58,10 @@ from splatreplace_ns.poses.up_axis import floor_up_axis
 from splatreplace_ns.poses.virtual_cameras import framing_distance, sphere_cameras
 
 
+# an instance with fewer Gaussians has no shape to register: it is refused, with the reason
+MIN_GAUSSIANS = 3
+
+
 # ----------------------------------------------------------------------------- helpers
 
 
@@ -239,7 +243,7 @@ def register_instance(
     def fail(msg: str) -> RegistrationResult:
         return RegistrationResult(sid, tid, message=f"{_name(source)}: {msg}", time_s=time.perf_counter() - t0)
 
-    if source.num_gaussians < 3 or template.num_gaussians < 3:
+    if source.num_gaussians < MIN_GAUSSIANS or template.num_gaussians < MIN_GAUSSIANS:
         return fail(f"too few Gaussians (source {source.num_gaussians}, template {template.num_gaussians})")
     if cfg.method == "fpfh":
         return _register_fpfh(source, template, cfg, t0)
@@ -397,7 +401,7 @@ def register_instances(
         if not sources:
             continue
         tpl_views = None
-        if cfg.method != "fpfh":
+        if cfg.method != "fpfh" and template.num_gaussians >= MIN_GAUSSIANS:  # else every source is refused
             use_cams = cameras if cfg.method == "no_virtual_views" else None
             if cfg.method == "no_virtual_views" and cameras is None:
                 raise ValueError("method='no_virtual_views' needs cameras=(viewmats, K) (e.g. the training cameras)")
