@@ -216,3 +216,62 @@ def test_an_instance_with_fewer_than_three_gaussians_is_refused_with_the_reason(
         results = register_instances(instances, {i: "blob" for i in instances}, cfg)
         assert results[1].success and np.array_equal(results[1].transform, np.eye(4))  # the template itself
         _refused(results[2], counts[1], counts[0])
+
+
+# --------------------------------------------------------------------------- ICP far from the truth, symmetric shape
+
+
+def _rot(axis, deg):
+    from scipy.spatial.transform import Rotation
+
+    axis = np.asarray(axis, dtype=np.float64)
+    return Rotation.from_rotvec(math.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
+
+
+def _rigid(R, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+@pytest.fixture(scope="module")
+def pawn():
+    mesh = class_mesh("pawn")
+    target = sample_mesh(mesh, 3000, seed=6)[0]
+    source_obj = sample_mesh(mesh, 3000, seed=7)[0]
+    diag = float(np.linalg.norm(target.max(0) - target.min(0)))
+    return target, source_obj, diag
+
+
+def _icp_from(pawn, axis, deg, shift_rel):
+    target, source_obj, diag = pawn
+    direction = np.array([0.6, -0.5, 0.3]) / np.linalg.norm([0.6, -0.5, 0.3])
+    T_src = _rigid(_rot(axis, deg), shift_rel * diag * direction)  # source = T_src · object
+    source = source_obj @ T_src[:3, :3].T + T_src[:3, 3]
+    T, fitness, _ = refine_icp(source, target, np.eye(4), max_distance=0.1 * diag)
+    estimate = np.linalg.inv(T)  # the object's pose in the source frame
+    up_error = math.degrees(math.acos(np.clip((estimate[:3, :3] @ [0, 0, 1]) @ (T_src[:3, :3] @ [0, 0, 1]), -1, 1)))
+    return estimate, T_src, fitness, up_error, diag
+
+
+@pytest.mark.parametrize("axis", [(1.0, 0.0, 0.0), (0.3, 1.0, 0.1), (1.0, 1.0, 0.0)])
+def test_icp_brings_a_pawn_back_from_40_degrees_of_tilt_and_a_quarter_of_its_size(pawn, axis):
+    assert CLASS_SYMMETRY["pawn"] == "rot_z:inf"  # symmetric about its up axis: the turn about it is free
+    estimate, T_src, fitness, up_error, diag = _icp_from(pawn, axis, 40.0, 0.25)
+    assert up_error < 0.5
+    assert rotation_error_deg(estimate, T_src, "rot_z:inf") < 0.5
+    assert translation_error_rel(estimate, T_src, diag) < 0.005
+    assert fitness > 0.99
+
+
+@pytest.mark.parametrize("deg", [60.0, 90.0, 120.0, 180.0])
+@pytest.mark.parametrize("axis", [(1.0, 0.0, 0.0), (0.3, 1.0, 0.1), (1.0, 1.0, 0.0)])
+def test_icp_started_far_off_is_right_or_says_its_fit_is_poor(pawn, axis, deg):
+    """From 60° of tilt and more ICP alone may settle in a wrong pose (the pawn lying about 115° off); then its
+    fitness says so: never a wrong pose with the fitness of a right one."""
+    estimate, T_src, fitness, up_error, diag = _icp_from(pawn, axis, deg, 0.25)
+    right = up_error < 1.0 and translation_error_rel(estimate, T_src, diag) < 0.01
+    if right:
+        assert fitness > 0.99
+    else:
+        assert up_error > 30.0 and fitness < 0.8, (up_error, fitness)
