@@ -275,3 +275,53 @@ def test_icp_started_far_off_is_right_or_says_its_fit_is_poor(pawn, axis, deg):
         assert fitness > 0.99
     else:
         assert up_error > 30.0 and fitness < 0.8, (up_error, fitness)
+
+
+# --------------------------------------------------------------------------- zero quaternions in composition
+
+
+def test_a_zero_quaternion_composes_as_the_identity_the_renderer_reads():
+    q0 = axis_angle_to_quat(torch.tensor([[0.0, 0.0, 1.2], [0.7, -0.4, 0.2]]))
+    pose_R = quat_to_rotmat(q0)
+    delta = torch.zeros(2, 6, requires_grad=True)
+    pose_q, R, t = instance_poses(q0, torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), delta)
+    torch.testing.assert_close(R, pose_R, atol=1e-6, rtol=0)
+    # template Gaussians of class 1: a zero quaternion, a tiny one, a unit one, a non-finite one; one background
+    quats = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1e-14, 0.0, -1e-14, 0.0], [0.6, 0.0, 0.8, 0.0],
+                          [NAN, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]], requires_grad=True)
+    n = len(quats)
+    scene = compose_scene(
+        torch.zeros(n, 3), quats, torch.zeros(n, 3), torch.zeros(n, 1), torch.zeros(n, 1, 3),
+        torch.zeros(n, 2, 1, 3), torch.tensor([1, 1, 1, 1, 0]), torch.tensor([1, 1]), torch.tensor([0, 1]),
+        torch.tensor([7, 8]), pose_q, R, t,
+    )
+    # rows: the background Gaussian, then instance 7's four, then instance 8's four
+    composed = scene.quats
+    assert torch.equal(composed[0], torch.zeros(4))  # background Gaussians are not composed
+    for k in range(2):
+        rows = composed[1 + 4 * k : 5 + 4 * k]
+        rot = quat_to_rotmat(rows[:3])
+        torch.testing.assert_close(rot[0], pose_R[k], atol=1e-6, rtol=0)  # zero: the pose's rotation
+        torch.testing.assert_close(rot[1], pose_R[k], atol=1e-6, rtol=0)  # near zero: likewise
+        unit = quat_to_rotmat(quats[2:3].detach())[0]
+        torch.testing.assert_close(rot[2], pose_R[k] @ unit, atol=1e-6, rtol=0)  # others as before
+        assert not torch.isfinite(rows[3]).all()  # non-finite stays so: the renderer culls it
+    # gradients through a zero quaternion are finite (zero for it) and reach the poses
+    finite = quats[:3].detach().clone().requires_grad_(True)
+    scene = compose_scene(
+        torch.zeros(3, 3), finite, torch.zeros(3, 3), torch.zeros(3, 1), torch.zeros(3, 1, 3),
+        torch.zeros(3, 2, 1, 3), torch.ones(3, dtype=torch.long), torch.tensor([1, 1]), torch.tensor([0, 1]),
+        torch.tensor([7, 8]), pose_q, R, t,
+    )
+    (scene.quats * torch.randn(scene.quats.shape)).sum().backward()
+    assert torch.isfinite(finite.grad).all() and (finite.grad[0] == 0).all()
+    assert torch.isfinite(delta.grad).all() and delta.grad[:, :3].abs().sum() > 0
+
+    # the same for one rigid transform of a set of Gaussians
+    T = torch.eye(4)
+    T[:3, :3] = pose_R[1]
+    _, moved, _ = transform_gaussians(T, torch.zeros(3, 3), quats[:3].detach(), torch.zeros(3, 1, 3))
+    rot = quat_to_rotmat(moved)
+    assert torch.isfinite(moved).all()
+    torch.testing.assert_close(rot[0], pose_R[1], atol=1e-6, rtol=0)
+    torch.testing.assert_close(rot[2], pose_R[1] @ quat_to_rotmat(quats[2:3].detach())[0], atol=1e-6, rtol=0)

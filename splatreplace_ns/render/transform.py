@@ -9,6 +9,7 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
+from splatreplace_ns.render.projection import QUAT_EPS
 from splatreplace_ns.render.sh import num_sh_bases, sh_basis
 
 
@@ -25,6 +26,22 @@ def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
         ),
         dim=-1,
     )
+
+
+def zero_quats_to_identity(quats: Tensor) -> Tensor:
+    """Quaternions with the zero ones (norm at most ``QUAT_EPS``) replaced by the identity. [..., 4] wxyz → [..., 4].
+
+    The renderer reads a zero quaternion as the identity rotation (``projection.quat_to_rotmat``); composing a
+    rotation with it then gives that rotation, where the raw product would stay zero and read as the identity.
+    Other quaternions (also non-finite ones, which the renderer culls) come back as they are.
+    """
+    with torch.no_grad():
+        zero = quats.norm(dim=-1, keepdim=True) <= QUAT_EPS
+    if not bool(zero.any()):
+        return quats
+    identity = torch.zeros_like(quats)
+    identity[..., 0] = 1.0
+    return torch.where(zero, identity, quats)
 
 
 def axis_angle_to_quat(omega: Tensor) -> Tensor:
@@ -88,7 +105,7 @@ def transform_gaussians(
     """Applies a rigid transform to Gaussians.
 
     Args:
-        T: [4, 4] rigid; means [n, 3]; quats [n, 4] wxyz; sh [n, K, 3].
+        T: [4, 4] rigid; means [n, 3]; quats [n, 4] wxyz (a zero one reads as the identity); sh [n, K, 3].
     Returns:
         means [n, 3], quats [n, 4], sh [n, K, 3] (SH rotated with the object).
     """
@@ -97,4 +114,4 @@ def transform_gaussians(
     K = sh.shape[1]
     degree = int(round(K**0.5)) - 1
     sh_out = torch.einsum("kl,nlc->nkc", sh_rotation(R, degree), sh) if K > 1 else sh
-    return means @ R.T + t, quat_multiply(q.expand(len(quats), 4), quats), sh_out
+    return means @ R.T + t, quat_multiply(q.expand(len(quats), 4), zero_quats_to_identity(quats)), sh_out

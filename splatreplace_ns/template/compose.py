@@ -24,7 +24,7 @@ from torch import Tensor
 
 from splatreplace_ns.render.projection import quat_to_rotmat
 from splatreplace_ns.render.sh import SH_C0
-from splatreplace_ns.render.transform import axis_angle_to_quat, quat_multiply, sh_rotation
+from splatreplace_ns.render.transform import axis_angle_to_quat, quat_multiply, sh_rotation, zero_quats_to_identity
 
 
 def instance_poses(q0: Tensor, t0: Tensor, delta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -105,7 +105,8 @@ def compose_scene(
     """Places every instance's copy of its class template into the world.
 
     Args:
-        means [N, 3], quats [N, 4], log_scales [N, 3], logit_opacities [N, 1] or [N]: stored Gaussians.
+        means [N, 3], quats [N, 4] (wxyz, any norm; a zero one reads as the identity, as in the renderer),
+            log_scales [N, 3], logit_opacities [N, 1] or [N]: stored Gaussians.
         sh: [N, K, 3] shared SH (background Gaussians: their own SH).
         sh_offsets: [N, S, K, 3] per-slot offsets (S = most instances of one class).
         gauss_class: [N] long, 0 = background, c ≥ 1 = template Gaussian of class c.
@@ -145,7 +146,7 @@ def compose_scene(
 
     R_rows, t_rows, q_rows = pose_R[row_instance], pose_t[row_instance], pose_q[row_instance]
     means_inst = torch.einsum("mij,mj->mi", R_rows, means[inst_rows]) + t_rows
-    quats_inst = quat_multiply(q_rows, quats[inst_rows])
+    quats_inst = quat_multiply(q_rows, zero_quats_to_identity(quats[inst_rows]))
     offsets = sh_offsets[inst_rows, torch.cat(slots)]  # [M_inst, K, 3]
     coeffs = mix_sh(sh[inst_rows], offsets, lam)
     if colour_gain is not None:  # a gain per channel commutes with the SH rotation below
