@@ -145,18 +145,44 @@ def test_pnp_degenerate_inputs():
     uv_line, _ = project(line, K, vm)
     res = solve_pnp(line, uv_line, K, W, H)
     assert not res.success and "collinear" in res.reason
-    plane = pts.copy()
-    plane[:, 2] = 0.0
-    uv_plane, _ = project(plane, K, vm)
-    res = solve_pnp(plane, uv_plane, K, W, H)
-    assert np.isfinite(res.world_to_camera).all()
-    if res.success:
-        assert np.abs(res.world_to_camera - vm).max() < 1e-3
-    else:
-        assert res.reason
+    # a plane seen edge-on (it holds the camera centre): every point projects onto one image line
+    eye = -vm[:3, :3].T @ vm[:3, 3]
+    in_plane = rng.uniform(-1, 1, (50, 2)) @ np.stack([vm[:3, :3].T @ [1.0, 0.0, 0.0], vm[:3, :3].T @ [0.0, 0.0, 1.0]])
+    edge_on = eye + vm[:3, :3].T @ [0.0, 0.0, 4.0] + in_plane
+    uv_edge, z_edge = project(edge_on, K, vm)
+    assert (z_edge > 0).all() and np.ptp(uv_edge[:, 1]) < 1e-9
+    res = solve_pnp(edge_on, uv_edge, K, W, H)
+    assert not res.success and "2D points are collinear" in res.reason and np.isfinite(res.world_to_camera).all()
     bad = pts.copy()
     bad[:, :] = np.nan
-    assert not solve_pnp(bad, uv, K, W, H).success
+    res = solve_pnp(bad, uv, K, W, H)
+    assert not res.success and "finite correspondences, got 0" in res.reason
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 50.0])
+def test_pnp_on_coplanar_points_gives_the_pose(tilt_deg):
+    """Points on one plane, spread over it and seen obliquely by a general camera, fix the pose (P3P on planes,
+    then refinement): exact without noise, within noise with noisy observations and 30 % outliers."""
+    from splatreplace_ns.poses.errors import geodesic_deg
+
+    rng, W, H, K, pts, vm, _ = _pnp_scene()
+    plane = np.c_[pts[:, :2], np.zeros(len(pts))] @ rot([1.0, 0.4, 0.2], tilt_deg).T + [0.2, 0.1, 0.3]
+    assert np.linalg.svd(plane - plane.mean(0), compute_uv=False)[2] < 1e-12  # truly coplanar
+    uv, z = project(plane, K, vm)
+    assert (z > 0).all() and (uv >= 0).all() and (uv <= [W, H]).all()
+    res = solve_pnp(plane, uv, K, W, H)
+    assert res.success, res.reason
+    assert res.num_inliers == len(plane)
+    assert geodesic_deg(res.world_to_camera[:3, :3], vm[:3, :3]) < 1e-6
+    assert np.abs(res.world_to_camera[:3, 3] - vm[:3, 3]).max() < 1e-8
+    noisy = uv + rng.normal(0.0, 0.5, uv.shape)
+    outliers = rng.random(len(uv)) < 0.3
+    noisy[outliers] = rng.uniform([0, 0], [W, H], size=(outliers.sum(), 2))
+    res = solve_pnp(plane, noisy, K, W, H)
+    assert res.success, res.reason
+    assert geodesic_deg(res.world_to_camera[:3, :3], vm[:3, :3]) < 0.3
+    assert np.abs(res.world_to_camera[:3, 3] - vm[:3, 3]).max() < 0.03  # the camera is 5 units away
+    assert (res.inlier_mask & outliers).sum() <= 2 and res.num_inliers >= (~outliers).sum() - 5
 
 
 def test_relative_transform_from_pnp():
