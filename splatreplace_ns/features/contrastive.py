@@ -54,7 +54,9 @@ def contrastive_loss(
     i = torch.randint(0, P, (n_pairs,), generator=generator, device="cpu").to(features.device)
     j = torch.randint(0, P - 1, (n_pairs,), generator=generator, device="cpu").to(features.device)
     j = j + (j >= i).long()  # never pair a pixel with itself
-    distance = cosine_distance(features[i], features[j])
+    # index_select, not features[i]: the backward of advanced indexing accumulates with atomic adds on more than
+    # one CPU thread (a different sum on every run); index_select's backward (index_add_) adds in a fixed order
+    distance = cosine_distance(features.index_select(0, i), features.index_select(0, j))
     positive = labels[i] == labels[j]
     n_pos = positive.sum().clamp_min(1)
     n_neg = (~positive).sum().clamp_min(1)

@@ -141,7 +141,9 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
         camera, batch = self.datamanager.next_train(step)
         pixel_index, labels = self.datamanager.sample_contrastive_pixels(batch)
         features, _, _ = self.model.render_features(camera)
-        losses = contrastive_loss(features.reshape(-1, features.shape[-1])[pixel_index], labels, self.config.contrastive)
+        # index_select: its backward adds in a fixed order on any number of threads (see contrastive_loss)
+        sampled = features.reshape(-1, features.shape[-1]).index_select(0, pixel_index)
+        losses = contrastive_loss(sampled, labels, self.config.contrastive)
         return {}, losses, {}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
