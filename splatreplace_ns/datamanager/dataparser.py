@@ -137,7 +137,7 @@ class SplatReplaceDataParser(Nerfstudio):
         data_dir = transforms_path.parent
 
         outputs.metadata["instance_mask_filenames"] = self._instance_mask_filenames(
-            meta, data_dir, outputs.image_filenames, transforms_path
+            meta, data_dir, outputs.image_filenames
         )
         outputs.metadata["instances"] = self._instances(meta, outputs, data_dir)
         outputs.metadata["instance_masks_source"] = self._instance_masks_source(meta)
@@ -166,9 +166,7 @@ class SplatReplaceDataParser(Nerfstudio):
         return meta.get("depth_zero", "unknown") == "far"
 
     @staticmethod
-    def _instance_mask_filenames(
-        meta: Dict, data_dir: Path, image_filenames: List[Path], transforms_path: Path
-    ) -> Optional[List[Path]]:
+    def _instance_mask_filenames(meta: Dict, data_dir: Path, image_filenames: List[Path]) -> Optional[List[Path]]:
         frames = meta.get("frames", [])
         if not any("instance_mask_path" in f for f in frames):  # the schema: every frame has one, or none
             return None
