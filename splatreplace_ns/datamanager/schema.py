@@ -24,8 +24,7 @@ MAX_FOCAL_PER_PIXEL = 1000.0
 """Largest focal length in units of the image's larger side (a field of view of about 0.06 degrees)."""
 MAX_IMAGE_SIDE = 100_000
 INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
-SPLIT_KEYS = ("train_filenames", "val_filenames", "test_filenames")
-DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
 CAMERA_MODELS = ("OPENCV", "OPENCV_FISHEYE", "EQUIRECTANGULAR", "PINHOLE", "SIMPLE_PINHOLE")
 """nerfstudio's ``camera_model`` names."""
 
@@ -175,7 +174,7 @@ def cross_field_problems(raw: Dict) -> List[str]:
             without = [i for i in range(len(frames)) if i not in set(having)]
             problems.append(f"'{key}' is given in {len(having)} of {len(frames)} frames (not in frames "
                             f"{_first(without)}); give it for every frame or for none")
-    given = [key for key in SPLIT_KEYS if key in raw]
+    given = [key for key in SPLIT_LISTS if key in raw]
     if given and ("train_filenames" not in given or given == ["train_filenames"]):
         problems.append(f"split lists {given}: give 'train_filenames' and 'test_filenames' (or 'val_filenames'), "
                         "or none of them")

@@ -8,16 +8,13 @@ base stage has trained.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Optional
 
 from splatreplace_ns.datamanager.click_masks import with_click_masks
 from splatreplace_ns.datamanager.clicks import click_place_problems, read_clicks
 from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.datamanager.file_checks import frame_file_problems, point_cloud_problems, read_json
-from splatreplace_ns.datamanager.schema import transforms_problems
-
-SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
-
+from splatreplace_ns.datamanager.schema import SPLIT_LISTS, transforms_problems
 
 def with_both_eval_splits(meta: Dict) -> Dict:
     """``transforms.json`` with ``val_filenames`` taken from ``test_filenames`` when only the latter is given (and
