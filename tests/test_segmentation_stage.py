@@ -124,17 +124,22 @@ def test_viewer_click_flow_selects_the_clicked_instance(segmented):
         fire_viewer_click(server, origin, direction)
         assert len(selection.instances) == 1, controls.status.value
         chosen = selection.labels() == 1
-        # it is the instance that the finished segmentation gave to this click (the second one): nearly all
-        # selected Gaussians belong to it. How much of it the ray's query covers depends on the features of this
-        # 300-iteration contrastive stage (0.19 in one CI run, above 0.5 in earlier ones), so it is only asked to be real.
-        # with carving waiting for registration, the leftovers it found for this instance are still there: parts of
-        # it that the finished segmentation missed
-        instance = pipeline.model.instance_labels == 2
-        if pipeline.model.carve_owner is not None:
-            instance |= pipeline.model.carve_owner == 2
+        assert int(chosen.sum()) > 10, int(chosen.sum())
+        # it is the instance that the finished segmentation gave to this click (the second one). Its Gaussians are
+        # those the segmentation selected for it (label 2) and, with carving waiting for registration, the leftovers
+        # carving found inside its masks (carve_owner 2): ten times as many, which no feature query selects, so the
+        # ray's query is scored against the selected ones (recall) and against both (precision).
+        # Measured with machine.seeds 42 (the fixture's) and 1-4: precision 1.0 in every run, recall of the selected
+        # ones 0.87 (seed 42), 0.87-0.98 over the five; recall of the other two instances 0. A query of the wrong
+        # instance scores 0 on both, a random choice of as many Gaussians has precision 0.04-0.17.
+        labels, owner = pipeline.model.instance_labels, pipeline.model.carve_owner
+        instance = labels == 2
+        if owner is not None:
+            instance |= owner == 2
         precision = float((chosen & instance).sum()) / float(chosen.sum())
-        recall = float((chosen & instance).sum()) / float(instance.sum())
-        assert precision > 0.95 and recall > 0.1, (precision, recall)
+        recall = float((chosen & (labels == 2)).sum()) / float((labels == 2).sum())
+        others = [float((chosen & (labels == k)).sum()) / float((labels == k).sum()) for k in (1, 3)]
+        assert precision > 0.95 and recall > 0.6 and max(others) < 0.05, (precision, recall, others)
         assert pipeline.model.highlight is not None and bool(pipeline.model.highlight.any())
 
         controls.undo()
@@ -254,9 +259,9 @@ def test_scores_against_a_reference_scene(segmented, tmp_path):
     assert pipeline.segmentation_report["skipped_clicks"] == []
     own = score_views_from_clicks(pipeline, data / "clicks.json")
     same = score_views_from_clicks(pipeline, data / "clicks.json", reference_scene=data)
-    # test views of a 400+300-iteration run: own-scene scores vary (0.26-0.60 seen in CI runs), so the check is
-    # relative; the floor only makes sure the masks are far from empty, so that the swap below can tell
-    assert own["miou"] > 0.15 and same["miou"] == own["miou"] and same["iou"] == own["iou"]
+    # test views of a 400+300-iteration run: mIoU 0.806 with the fixture's seed, 0.78-0.81 with machine.seeds 1-4;
+    # empty masks score 0 and the swapped ids below 0.001-0.002
+    assert own["miou"] > 0.6 and same["miou"] == own["miou"] and same["iou"] == own["iou"], own["iou"]
     swapped = tmp_path / "swapped"
     shutil.copytree(data, swapped)
     clicks = json.loads((data / "clicks.json").read_text())
