@@ -399,9 +399,11 @@ def test_eval_report_of_a_segmented_model(segmented_run, tmp_path):
     assert set(segmentation["iou"]) == {str(c["id"]) for c in clicks}
     assert segmentation["miou"] == pytest.approx(np.mean(list(segmentation["iou"].values())))
     assert segmentation["click_failures"] == []
-    # the clicked instances are found in the test views, roughly after so short a training (one of the three
-    # crates scored IoU 0.003 in one of four fresh-clone runs: the 500-step fixture is not stable per instance)
-    assert 0.3 < segmentation["miou"] <= 1.0 and sum(v > 0.5 for v in segmentation["iou"].values()) >= 2
+    # the clicked instances are found in the test views: mIoU 0.736 with the fixture's seed (the same at 1 and 2
+    # torch threads), 0.73-0.76 with machine.seeds 1-4, the lowest crate 0.63 in those five runs. Empty masks
+    # score 0, and the queries of the wrong instances about 0 (0.001-0.002 with the ids swapped in
+    # test_segmentation_stage's test_scores_against_a_reference_scene)
+    assert 0.6 < segmentation["miou"] <= 1.0 and min(segmentation["iou"].values()) > 0.5, segmentation["iou"]
     assert 0.0 < segmentation["macc"] <= 1.0
     assert segmentation["views"] == len(pipeline.datamanager.eval_dataset)
 
@@ -461,4 +463,5 @@ def test_ns_eval_writes_one_strict_json_with_every_figure(segmented_run, tmp_pat
     assert 0 < results["ssim_masked"] <= 1 and results["masked_views"] >= 1
     assert results["versions"]["splatreplace_ns"]
     assert set(results["unavailable"]) >= {"lpips", "kid"}
-    assert results["segmentation"]["miou"] > 0.05 and results["segmentation"]["click_failures"] == []
+    # the same model from its checkpoint: the segmentation scores as in test_eval_report_of_a_segmented_model
+    assert results["segmentation"]["miou"] > 0.6 and results["segmentation"]["click_failures"] == [], results["segmentation"]
