@@ -71,7 +71,11 @@ def test_tiny_run_writes_the_interface(tmp_path):
     for key in ("preset", "miou", "macc", "miou_1k", "miou_5k", "leftover", "time_s"):
         assert key in written, key
     assert written["preset"] == "tiny" and written["miou_5k"] == result["miou"]
-    assert 0.0 <= written["miou"] <= 1.0 and 0.0 <= written["macc"] <= 1.0 and 0.0 <= written["miou_1k"] <= 1.0
+    # the tiny run segments its three crates: mIoU 0.770 and mAcc 0.900 with the default machine.seed, 0.75-0.78 and
+    # 0.89-0.91 with machine.seeds 1-4; the early score (after 100 contrastive steps) is real but lower, 0.41 and
+    # 0.16-0.43. Empty masks give mIoU 0 and mAcc 0.25 (the background's accuracy alone)
+    assert 0.6 < written["miou"] <= 1.0 and 0.8 < written["macc"] <= 1.0, (written["miou"], written["macc"])
+    assert 0.0 < written["miou_1k"] < written["miou"], written["miou_1k"]
     leftover = written["leftover"]
     assert all(isinstance(leftover[k], int) and leftover[k] >= 0 for k in ("none", "reg", "reg_carve"))
     # carving only removes background Gaussians near instances, never adds them
