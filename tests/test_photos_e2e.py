@@ -278,6 +278,13 @@ def test_ns_train_runs_the_method_from_the_photos(capture, tmp_path):
     iou = inter / np.maximum(union, 1)
     print(f"mask IoU per click (rows) against each true crate (columns): {np.round(iou, 3).tolist()}")
     # each mask is the crate that was clicked, not another; at 64x48 from a 300-step base on COLMAP's sparse points
-    # the masks are coarse (IoU 0.24-0.40 at this writing)
+    # the masks are coarse. On one reconstruction this run is repeatable (the same matrix twice), but COLMAP's is not:
+    # its CPU matches differ from run to run even with one matching thread and a fixed --random_seed (COLMAP 3.8).
+    # Over 17 runs of the whole test, each with its own COLMAP run: in the 13 that got here the clicked crate scored
+    # 0.158-0.45 (each run's lowest 0.158-0.29) and another crate at most 0.05, at least 5.2 times less than the
+    # clicked one in its row; the other 4 failed above, with two crates merged at segmentation (twice after the masks
+    # step took a click for the floor). A mask of the wrong crate fails the argmax and the ratio, an empty one all three.
+    own = [iou[k, ids.index(c["id"])] for k, c in enumerate(clicks)]
+    others = [max(np.delete(iou[k], ids.index(c["id"]))) for k, c in enumerate(clicks)]
     assert [ids[j] for j in iou.argmax(axis=1)] == [c["id"] for c in clicks], iou
-    assert min(iou[k, ids.index(c["id"])] for k, c in enumerate(clicks)) > 0.15, iou
+    assert min(own) > 0.1 and all(o > 3 * x for o, x in zip(own, others)), iou
