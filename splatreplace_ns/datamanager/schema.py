@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any, Dict, List, Literal, Optional
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StrictStr, TypeAdapter, ValidationError, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictStr, TypeAdapter, ValidationError
 from typing_extensions import Annotated
 
 RIGID_TOLERANCE = 1e-2
@@ -57,6 +57,23 @@ def rigid_problem(matrix: List[List[float]], rows: int) -> Optional[str]:
 Matrix = List[Annotated[List[Finite], Field(min_length=4, max_length=4)]]
 
 
+def _rigid(rows: int):
+    """A validator: a pose of ``rows`` x 4 finite numbers that is rigid (:func:`rigid_problem`)."""
+    def check(value):
+        problem = rigid_problem(value, rows)
+        if problem:
+            raise ValueError(problem)
+        return value
+    return AfterValidator(check)
+
+
+Pose = Annotated[Matrix, Field(min_length=3, max_length=4), _rigid(4)]
+"""Camera→world: 3x4, or 4x4 with [0, 0, 0, 1] below."""
+ObjectPose = Annotated[Matrix, Field(min_length=4, max_length=4), _rigid(4)]
+"""Object→world, 4x4."""
+Pose3x4 = Annotated[Matrix, Field(min_length=3, max_length=3), _rigid(3)]
+
+
 class Intrinsics(BaseModel):
     """The camera fields nerfstudio reads from the top level or from each frame."""
 
@@ -78,19 +95,11 @@ class Intrinsics(BaseModel):
 
 class Frame(Intrinsics):
     file_path: RelativePath
-    transform_matrix: Matrix = Field(min_length=3, max_length=4)
+    transform_matrix: Pose
     """Camera→world, OpenGL convention."""
     mask_path: Optional[RelativePath] = None
     depth_file_path: Optional[RelativePath] = None
     instance_mask_path: Optional[RelativePath] = None
-
-    @field_validator("transform_matrix")
-    @classmethod
-    def _rigid(cls, value):
-        problem = rigid_problem(value, 4)
-        if problem:
-            raise ValueError(problem)
-        return value
 
 
 class Instance(BaseModel):
@@ -101,16 +110,8 @@ class Instance(BaseModel):
     class_: StrictStr = Field("object", alias="class", min_length=1)
     symmetry: StrictStr = "none"
     size: Optional[Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0)]] = None
-    transform_matrix: Optional[Matrix] = Field(None, min_length=4, max_length=4)
+    transform_matrix: Optional[ObjectPose] = None
     """Object→world, ground truth (scores registration)."""
-
-    @field_validator("transform_matrix")
-    @classmethod
-    def _rigid(cls, value):
-        problem = None if value is None else rigid_problem(value, 4)
-        if problem:
-            raise ValueError(problem)
-        return value
 
 
 class Transforms(Intrinsics):
@@ -123,20 +124,12 @@ class Transforms(Intrinsics):
     test_filenames: Optional[List[RelativePath]] = None
     instances: Optional[List[Instance]] = None
     ply_file_path: Optional[RelativePath] = None
-    applied_transform: Optional[Matrix] = Field(None, min_length=3, max_length=3)
+    applied_transform: Optional[Pose3x4] = None
     applied_scale: Optional[Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0)]] = None
     orientation_override: Optional[Literal["pca", "up", "vertical", "none"]] = None
     depth_unit_scale_factor: Optional[Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0)]] = None
     depth_zero: Optional[Literal["unknown", "far"]] = None
     instance_masks_source: Optional[Literal["ground_truth", "clicks"]] = None
-
-    @field_validator("applied_transform")
-    @classmethod
-    def _applied_rigid(cls, value):
-        problem = None if value is None else rigid_problem(value, 3)
-        if problem:
-            raise ValueError(problem)
-        return value
 
 
 def cross_field_problems(raw: Dict) -> List[str]:
