@@ -136,16 +136,19 @@ def _one_line_error(command: list, cwd: Path) -> tuple[int, str]:
     return result.returncode, result.stderr
 
 
+def cli_command(tool: str, data: Path, out: Path) -> list:
+    """``ns-train splat-replace`` or ``splatreplace masks`` on ``data``, as a user types it."""
+    bin_dir = Path(sys.executable).parent
+    if tool == "ns-train":
+        return [str(bin_dir / "ns-train"), "splat-replace", "--data", str(data), "--output-dir", str(out),
+                "--vis", "tensorboard"]
+    return [str(bin_dir / "splatreplace"), "masks", str(data), "--output-dir", str(out)]
+
+
 @pytest.mark.parametrize("tool", ["ns-train", "splatreplace"])
 def test_the_command_line_prints_one_line_and_no_traceback(scene, tmp_path, tool):
     data = _broken(scene, tmp_path, CASES[0][1])
-    bin_dir = Path(sys.executable).parent
-    if tool == "ns-train":
-        command = [str(bin_dir / "ns-train"), "splat-replace", "--data", str(data), "--output-dir",
-                   str(tmp_path / "out"), "--vis", "tensorboard"]
-    else:
-        command = [str(bin_dir / "splatreplace"), "masks", str(data), "--output-dir", str(tmp_path / "out")]
-    code, stderr = _one_line_error(command, tmp_path)
+    code, stderr = _one_line_error(cli_command(tool, data, tmp_path / "out"), tmp_path)
     assert code != 0 and "Traceback" not in stderr, stderr[-2000:]
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("error: ") and "transforms.json: not valid JSON" in last, last
