@@ -39,6 +39,7 @@ class ReplacedScene:
             table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
             lam=self.config.template_mix,
             colour_gain=self.instance_colour_gain if self.config.copy_colour_gain else None,
+            offset_rest_scale=self.config.offset_rest_scale,
         )
 
     @torch.no_grad()

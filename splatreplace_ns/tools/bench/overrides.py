@@ -47,7 +47,8 @@ def parse_like(text: str, current: Any, path: str) -> Any:
 
 def apply_overrides(config: Any, overrides: Sequence[str]) -> Any:
     """Sets each ``PATH=VALUE`` of ``overrides`` on ``config`` (a dataclass; ``PATH`` is dotted, e.g.
-    ``pipeline.registration.upright``) in place, and returns ``config``.
+    ``pipeline.registration.upright``, and goes through dicts by key, e.g.
+    ``optimizers.means.scheduler.finetune_lr``) in place, and returns ``config``.
 
     Raises:
         ValueError: for an item without ``=``, a path that names no field (the message lists the fields of the
@@ -61,15 +62,30 @@ def apply_overrides(config: Any, overrides: Sequence[str]) -> Any:
         target = config
         parts = path.split(".")
         for depth, name in enumerate(parts):
-            names = [f.name for f in fields(target)] if is_dataclass(target) else []
+            names = _names(target)
             if name not in names:
                 where = ".".join(parts[:depth]) or "the config"
                 raise ValueError(f"override {path}: {where} has no field {name!r}; its fields: {', '.join(names)}")
             if depth < len(parts) - 1:
-                target = getattr(target, name)
-        current = getattr(target, parts[-1])
-        if is_dataclass(current):
+                target = _get(target, name)
+        current = _get(target, parts[-1])
+        if is_dataclass(current) or isinstance(current, dict):
             raise ValueError(f"override {path}: a group of settings; name one of its fields "
-                             f"({', '.join(f.name for f in fields(current))})")
-        setattr(target, parts[-1], parse_like(text.strip(), current, path))
+                             f"({', '.join(_names(current))})")
+        value = parse_like(text.strip(), current, path)
+        if isinstance(target, dict):
+            target[parts[-1]] = value
+        else:
+            setattr(target, parts[-1], value)
     return config
+
+
+def _names(node: Any) -> list:
+    """The fields of a dataclass or the keys of a dict (nerfstudio's ``optimizers``), else none."""
+    if is_dataclass(node):
+        return [f.name for f in fields(node)]
+    return [str(k) for k in node] if isinstance(node, dict) else []
+
+
+def _get(node: Any, name: str) -> Any:
+    return node[name] if isinstance(node, dict) else getattr(node, name)
