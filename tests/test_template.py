@@ -238,6 +238,19 @@ def test_merge_cell_ignores_clumps_of_near_duplicates():
     assert (d < 0.1).all()  # the merged template still covers the shell (cell = radius / 30 ≈ 0.033)
 
 
+def test_merge_leaves_a_class_of_one_copy_whole():
+    """A class with one registered copy overlaps nothing; the merge grid would only drop its Gaussians that share
+    a cell (the clumps densification leaves), so it keeps them all while a two-copy class is merged."""
+    params, labels = _random_scene(n_bg=0, n_inst=(300, 300, 300))
+    params["means"][:300] = params["means"][:300][torch.arange(300) // 3]  # clumps of 3
+    params["means"][600:] = params["means"][300:600] + 1e-4  # instance 3 = instance 2 (already registered)
+    merged, table = build_templates(params, labels, {1: "a", 2: "b", 3: "b"},
+                                    {1: torch.eye(4), 2: torch.eye(4), 3: torch.eye(4)}, {"a": 1, "b": 2}, merge=True)
+    per_class = merged["template_class"][:, 0].round().long()
+    assert int((per_class == 1).sum()) == 300  # class a: all of its one copy
+    assert int((per_class == 2).sum()) < 400  # class b: two copies merged to about one
+
+
 def test_zero_mix_puts_the_colour_in_the_offsets():
     params, labels = _random_scene(n_bg=5, n_inst=(10, 10))
     out, table = build_templates(params, labels, {1: "a", 2: "a"}, {1: torch.eye(4), 2: torch.eye(4)}, {"a": 1}, lam=0.0)

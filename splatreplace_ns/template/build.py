@@ -120,8 +120,8 @@ def build_templates(
         templates: {class name: template instance id}.
         lam: mixing weight λ (shared colours are stored divided by λ, offsets start at 0; with λ = 0 the
             offsets carry the colour and start equal to it).
-        merge: keep one Gaussian per voxel of each class's union (see :func:`merge_union`) instead of the
-            plain union of the paper.
+        merge: keep one Gaussian per voxel of each class's union of two or more copies (see
+            :func:`merge_union`) instead of the plain union of the paper; a class of one copy keeps all of it.
         merge_cells_per_radius: merge grid cell = template radius / this.
     Returns:
         (new params with ``template_class`` [N', 1] float and ``sh_offsets`` [N', S, K, 3] added, table).
@@ -166,7 +166,7 @@ def build_templates(
             q0.append(rotmat_to_quat(pose[:3, :3]))
             t0.append(pose[:3, 3])
         union = {k: torch.cat([p[k] for p in class_parts]) for k in class_parts[0]}
-        if merge:
+        if merge and len(members) > 1:  # one copy overlaps nothing: merging would only thin it
             reference = class_parts[members.index(template_ids[c])]["means"] if template_ids[c] in members else union["means"]
             keep = merge_union(union, reference, merge_cells_per_radius).to(device)
             union = {k: v[keep] for k, v in union.items()}
