@@ -191,17 +191,20 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
         self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
     ) -> Dict:
         """nerfstudio's averages over the eval views plus the masked PSNR/SSIM; outside training (``ns-eval``,
-        ``step=None``) also KID, the versions, segmentation and registration scores and ``unavailable``
-        (metric → reason), see ``splatreplace_ns.eval.report``.
+        ``step=None``) also KID, the versions, segmentation and registration scores, the PSNR on own / shared /
+        unseen pixels (``splatreplace_ns.eval.coverage``) and ``unavailable`` (metric → reason), see
+        ``splatreplace_ns.eval.report``.
 
         During training (``step`` given) only numbers are returned: the Trainer logs every entry as a scalar.
         """
+        from splatreplace_ns.eval.coverage import CoverageRecorder
         from splatreplace_ns.eval.report import EvalViewRecorder, evaluation_report, json_safe
 
-        with EvalViewRecorder(self.model, with_kid=step is None) as recorder:
+        with EvalViewRecorder(self.model, with_kid=step is None) as recorder, \
+                CoverageRecorder(self.model, self.datamanager, enabled=step is None) as coverage:
             metrics = super().get_average_eval_image_metrics(step, output_path, get_std)
         metrics.update(recorder.masked_averages(get_std))
         if step is not None:
             return metrics
         metrics.update(evaluation_report(self, recorder))
-        return json_safe(metrics)
+        return json_safe(coverage.add_to(metrics))

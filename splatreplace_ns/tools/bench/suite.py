@@ -230,6 +230,7 @@ def _registration_summary(report: Optional[Dict], model_registration: Dict) -> D
 def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     """Generate (or reuse) one scene, train ours and the baseline, and score both."""
     from splatreplace_ns.tools.bench.template import test_metrics, train_ours_and_baseline
+    from splatreplace_ns.eval.coverage import compare_coverage
     from splatreplace_ns.eval.report import registration_report, segmentation_report
     from splatreplace_ns.tools.sim.scene import class_size
 
@@ -275,6 +276,7 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         "gain_masked": _diff(ours.get("psnr_masked"), baseline.get("psnr_masked")),
         "gain_full": _diff(ours.get("psnr"), baseline.get("psnr")),
         "per_instance": per_instance,
+        "coverage": compare_coverage(baseline.get("coverage"), ours.get("coverage")),  # own / shared / unseen pixels
         "segmentation_miou": segmentation.get("miou"),
         "segmentation_unavailable": segmentation.get("unavailable"),
         "registration": _registration_summary(registration, pipeline.model.registration),
@@ -352,6 +354,8 @@ def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
     previous = json.loads(saved.read_text())["row"]
     baseline = dict(previous["baseline"])
     baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
+    if previous.get("coverage") and "unavailable" not in previous["coverage"]:  # absent from older results
+        baseline["coverage"] = {k: previous["coverage"][k]["baseline"] for k in ("own", "shared", "unseen")}
     return previous, baseline
 
 
@@ -382,7 +386,10 @@ def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
 
 def summarise(rows: List[Dict]) -> Dict:
     """Mean gain, worst scene's gain, share of scenes where ours is worse (masked PSNR), and the same for full
-    images; instances that lost more than 1 dB; wrong or failed registrations."""
+    images; instances that lost more than 1 dB; wrong or failed registrations; the mean gain on own, shared and
+    unseen pixels."""
+    from splatreplace_ns.eval.coverage import mean_coverage_gains
+
     masked = [r["gain_masked"] for r in rows if r["gain_masked"] is not None]
     full = [r["gain_full"] for r in rows if r["gain_full"] is not None]
     losses = [{"seed": r["seed"], "instance": int(k), "gain": v["gain"]}
@@ -400,6 +407,7 @@ def summarise(rows: List[Dict]) -> Dict:
         "failed_registrations": sum(len(r["registration"]["failures"]) for r in rows),
         "refused_right": sum(len(r["registration"].get("refused_right", [])) for r in rows),
         "refused_wrong": sum(len(r["registration"].get("refused_wrong", [])) for r in rows),
+        "coverage_gain_mean": mean_coverage_gains([r.get("coverage") for r in rows]),
         "segmentation_miou_mean": statistics.fmean(m) if (m := [r["segmentation_miou"] for r in rows
                                                                 if r["segmentation_miou"] is not None]) else None,
     }

@@ -33,8 +33,8 @@ def print_suite(result: Dict) -> None:
                         f"ours {result['parameters']['base_iterations']}+{result['parameters']['contrastive_iterations']}"
                         f"+{result['parameters']['finetune_iterations']} vs 3DGS* "
                         f"{result['parameters']['baseline_iterations']} iterations)")
-    columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "masked SSIM", "mIoU",
-               "rot. err. ° mean / max", "failed / wrong", "s: base / contr. / seg. / reg. / fine")
+    columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "gain shared (px %)",
+               "masked SSIM", "mIoU", "rot. err. ° mean / max", "failed / wrong", "s: base / contr. / seg. / reg. / fine")
     for col in columns:
         table.add_column(col)
     for r in result["scenes"]:
@@ -46,6 +46,7 @@ def print_suite(result: Dict) -> None:
             f"{_fmt(r['baseline']['psnr_masked'])} → {_fmt(r['ours']['psnr_masked'])} "
             f"[{colour}]({_fmt(gain, signed=True)})[/]",
             f"{_fmt(r['baseline']['psnr'])} → {_fmt(r['ours']['psnr'])} ({_fmt(r['gain_full'], signed=True)})",
+            shared_gain_cell(r.get("coverage")),
             f"{_fmt(r['baseline']['ssim_masked'], 3)} → {_fmt(r['ours']['ssim_masked'], 3)}",
             _fmt(r["segmentation_miou"], 3),
             f"{_fmt(reg['rotation_error_deg_mean'], 1)} / {_fmt(reg['rotation_error_deg_max'], 1)}",
@@ -63,6 +64,22 @@ def print_suite(result: Dict) -> None:
         f"{s.get('refused_right', 0)}, further {s.get('refused_wrong', 0)}), accepted wrong (> {WRONG_POSE_DEG:.0f}°) "
         f"{s['wrong_registrations']}; {result['time_s'] / 60:.0f} min in all"
     )
+    gains = s.get("coverage_gain_mean") or {}
+    if any(v is not None for v in gains.values()):  # where the gain comes from: pixels seen on another copy only
+        console.print("mean gain by coverage of the test pixels: " + ", ".join(
+            f"{k} " + ("n/a" if gains.get(k) is None else f"{gains[k]:+.2f} dB") for k in ("own", "shared", "unseen")))
+
+
+def shared_gain_cell(coverage) -> str:
+    """The table's cell for the gain on the pixels seen only on another copy, and their share of the instance
+    pixels: ``+0.52 (3 %)``; ``n/a`` without the diagnostic, ``— (0 %)`` without such pixels."""
+    if not coverage:
+        return "n/a"
+    share = coverage["pixel_share"].get("shared")
+    share_text = "" if share is None else f" ({_fmt(100 * share, 0)} %)"
+    if not coverage["pixels"].get("shared"):
+        return "—" + share_text
+    return _fmt(coverage["shared"]["gain"], signed=True) + share_text
 
 
 def write_gain_plot(result: Dict, path: Path) -> None:
