@@ -1,6 +1,6 @@
 """Own / shared / unseen test pixels (``splatreplace_ns.eval.coverage``) on a hand-made scene of two boxes whose
-answer is known, the PSNR per class on a tiny image pair, what the suite makes of it, and the reasons it is
-unavailable."""
+answer is known, the PSNR per class on a tiny image pair and what the suite makes of it
+(``splatreplace_ns.eval.coverage_scores``), and the reasons it is unavailable."""
 
 from __future__ import annotations
 
@@ -15,9 +15,12 @@ import pytest
 import torch
 
 from splatreplace_ns.eval import coverage as cov
+from splatreplace_ns.eval import coverage_scores as scores
 from splatreplace_ns.eval.coverage import (
-    NONE, OWN, SHARED, UNSEEN, CoverageInputs, CoverageRecorder, View, classify, compare_coverage,
-    coverage_psnr, mean_coverage_gains, read_coverage_inputs, visible_in_views,
+    NONE, OWN, SHARED, UNSEEN, CoverageInputs, View, classify, read_coverage_inputs, visible_in_views,
+)
+from splatreplace_ns.eval.coverage_scores import (
+    CoverageRecorder, compare_coverage, coverage_psnr, mean_coverage_gains,
 )
 from splatreplace_ns.eval.metrics import mse_to_psnr
 from splatreplace_ns.tools.sim.cameras import look_at
@@ -232,6 +235,17 @@ def test_recorder_pools_the_eval_views_and_hands_the_method_back(tmp_path):
     assert metrics["psnr_own"] == pytest.approx(20.0) and metrics["psnr_shared"] == pytest.approx(-20 * math.log10(0.2))
     assert metrics["psnr_unseen"] == pytest.approx(-20 * math.log10(0.4))
     assert metrics["coverage"]["pixels"] == classify(inputs).pixels()
+    # the classes of the points seen well, pooled beside: the same images scored on the sharp label maps
+    sharp = classify(inputs).sharp
+    rendered = [torch.tensor([0.0, 0.1, 0.2, 0.4])[torch.from_numpy(m).long()][..., None].expand(SIZE, SIZE, 3)
+                for m in labels]
+    expected = coverage_psnr(sharp.labels, [(r, torch.zeros(SIZE, SIZE, 3)) for r in rendered])
+    for name in ("own", "shared", "unseen"):
+        assert metrics[f"psnr_{name}_sharp"] == pytest.approx(expected[name])
+    assert metrics["coverage"]["sharp"]["pixels"] == sharp.pixels() == expected["pixels"]
+    assert metrics["coverage"]["sharp"]["footprint_ratio"] == cov.FOOTPRINT_RATIO
+    assert "2.0 times" in metrics["coverage"]["sharp"]["definition"]
+    assert metrics["coverage"]["sharp"]["per_instance"]["1"]["own"] == sharp.per_instance[1]["own"]
     assert CoverageRecorder(model, datamanager, enabled=False).add_to({}) == {}  # during training: nothing
 
 
@@ -291,3 +305,205 @@ def test_the_suite_table_shows_the_gain_on_shared_pixels(capsys):
     out = capsys.readouterr().out
     assert "gain shared" in out and "+0.50 (25 %)" in out
     assert "mean gain by coverage of the test pixels: own +0.00 dB, shared +0.50 dB, unseen n/a" in out
+
+
+# ------------------------------------------------------------------ seen well: the footprint test
+HEAD_ON_F = 40.0
+FACE = np.array([-5.0, HALF, 0.0])  # the middle of copy 1's +y face
+FACE_2 = np.array([5.0, HALF, 0.0])  # the same canonical point on copy 2
+
+
+def facing(name: str, point, distance: float, angle_deg: float = 0.0) -> View:
+    """A view of ``point`` on a +y face from ``distance`` along a direction ``angle_deg`` from the face's normal
+    (tilted towards +x), at the head-on focal length."""
+    a = math.radians(angle_deg)
+    eye = np.asarray(point) + distance * np.array([math.sin(a), math.cos(a), 0.0])
+    return view(name, eye, point, HEAD_ON_F)
+
+
+def face_scene(*train: View) -> CoverageInputs:
+    """One test view head-on at copy 1's +y face from 3 units, with the given training views."""
+    return CoverageInputs(list(train), [facing("t.png", FACE, 3.0)], dict(POSES), {1: "box", 2: "box"})
+
+
+def test_the_footprint_grows_with_distance_and_slant_and_stays_finite_at_grazing():
+    eye = np.zeros(3)
+    point = np.array([[0.0, 0.0, -4.0]])
+    z = np.array([4.0])
+    normal = lambda deg: np.array([[math.sin(math.radians(deg)), 0.0, math.cos(math.radians(deg))]])  # noqa: E731
+    assert cov.footprint(point, normal(0), eye, z, 100.0)[0] == pytest.approx(0.04)
+    assert cov.footprint(point, normal(180), eye, z, 100.0)[0] == pytest.approx(0.04)  # either side of the surface
+    assert cov.footprint(point, normal(60), eye, z, 100.0)[0] == pytest.approx(0.08)
+    assert cov.footprint(point, normal(90), eye, z, 100.0)[0] == pytest.approx(0.04 / cov.MIN_COS)  # the floor
+
+
+def test_a_face_seen_head_on_by_its_own_copy_at_the_same_distance_is_own_sharp():
+    result = classify(face_scene(facing("a.png", FACE, 3.0, 10.0)))
+    t, sharp = result.labels[0], result.sharp.labels[0]
+    on = face_scene().test[0].mask == 1
+    assert result.footprint_ratio == result.sharp.footprint_ratio == cov.FOOTPRINT_RATIO
+    assert t[SIZE // 2, SIZE // 2] == sharp[SIZE // 2, SIZE // 2] == OWN
+    assert (sharp[on] == OWN).mean() > 0.9 and ((sharp == OWN) <= (t == OWN)).all()  # seen well implies seen
+    assert result.sharp.per_instance[1]["own"] == int((sharp == OWN).sum())
+    assert result.sharp.pixels()["own"] == int((sharp == OWN).sum())
+
+
+@pytest.mark.parametrize("own_view, ratio", [
+    (facing("far.png", FACE, 12.0), 4.0),  # head-on, four times farther: four times the footprint
+    (facing("grazing.png", FACE, 3.0, 65.0), 1 / math.cos(math.radians(65.0))),  # at 65°: 2.4 times
+])
+def test_a_face_seen_badly_by_its_own_copy_and_well_by_another_is_shared_sharp(own_view, ratio):
+    inputs = face_scene(own_view, facing("b.png", FACE_2, 3.0))  # B: head-on at copy 2, the same distance
+    result = classify(inputs)
+    centre = SIZE // 2
+    assert result.labels[0][centre, centre] == OWN  # visible on its own copy: own by visibility
+    assert result.sharp.labels[0][centre, centre] == SHARED
+    # a footprint ratio above the one of the own view accepts it
+    assert classify(inputs, footprint_ratio=ratio * 1.25).sharp.labels[0][centre, centre] == OWN
+    # without B the point is seen well nowhere
+    assert classify(face_scene(own_view)).sharp.labels[0][centre, centre] == UNSEEN
+
+
+def test_a_face_seen_at_85_degrees_by_its_own_copy_is_shared_sharp_everywhere():
+    """At 85° the depth test passes only where a point lands near a pixel centre (own by visibility there); the
+    footprint, ten times the head-on one (the floor), leaves the whole face to B."""
+    inputs = face_scene(facing("grazing.png", FACE, 3.0, 85.0), facing("b.png", FACE_2, 3.0))
+    result = classify(inputs)
+    on = inputs.test[0].mask == 1
+    assert (result.labels[0][on] == OWN).any()
+    assert (result.sharp.labels[0][on] == SHARED).all()
+
+
+def test_a_face_seen_well_by_no_copy_is_unseen_sharp_though_seen():
+    inputs = face_scene(facing("far.png", FACE, 12.0), facing("b_far.png", FACE_2, 12.0, 10.0))
+    result = classify(inputs)
+    on = inputs.test[0].mask == 1
+    assert (result.labels[0][on] != UNSEEN).mean() > 0.9  # visible on its own copy nearly everywhere
+    assert (result.sharp.labels[0][on] == UNSEEN).all()
+    assert classify(inputs, footprint_ratio=None).sharp is None  # the visibility classing alone
+
+
+def test_the_two_box_scene_seen_well():
+    """A and B see their faces at a fifth of the test views' footprint: the sharp classes are the visible ones."""
+    result = classify(scene())
+    centre = SIZE // 2
+    assert [s[centre, centre] for s in result.sharp.labels] == [OWN, SHARED, UNSEEN]
+    for labels, sharp in zip(result.labels, result.sharp.labels):
+        assert (sharp == labels).mean() > 0.97  # rim pixels may differ by the normal taken at the face's edge
+
+
+def plane_depth(c2w: np.ndarray, K: np.ndarray, normal, point) -> np.ndarray:
+    """z-depth of the plane through ``point`` with ``normal`` at every pixel centre (0 where behind the camera)."""
+    v, u = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], -(v - K[1, 2]) / K[1, 1], -np.ones_like(u)], axis=-1)
+    dirs = d_cam @ c2w[:3, :3].T
+    t = np.dot(np.asarray(point) - c2w[:3, 3], normal) / (dirs @ np.asarray(normal))
+    return np.where(t > 0, t, 0.0)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+PLANE_CAMERA = look_at(np.array([0.5, -4.0, 1.5]), np.zeros(3))
+
+
+def test_normals_of_a_tilted_plane():
+    K = intrinsics(HEAD_ON_F)
+    true = np.array([0.4, -1.0, 0.7])
+    true /= np.linalg.norm(true)  # about 55° from the viewing direction
+    depth = np.round(plane_depth(PLANE_CAMERA, K, true, np.zeros(3)), 3)  # the depth files' millimetres
+    normals = cov.surface_normals(View("p.png", PLANE_CAMERA, K, np.ones((SIZE, SIZE), np.int64), depth))
+    assert angle_deg(normals, true).max() < 3.0  # the image's border too, from one side
+
+
+def test_normals_do_not_blend_across_a_depth_discontinuity_or_another_instance():
+    """Left half: one plane; right half: another, a unit farther, on the same instance; the pixels beside the
+    step take their tangents from their own side. Then the right half as another instance at the same place."""
+    K = intrinsics(HEAD_ON_F)
+    left, right = np.array([0.3, -1.0, 0.2]), np.array([-0.5, -1.0, 0.4])
+    left, right = left / np.linalg.norm(left), right / np.linalg.norm(right)
+    depth = np.where(np.arange(SIZE) < SIZE // 2, plane_depth(PLANE_CAMERA, K, left, np.zeros(3)),
+                     plane_depth(PLANE_CAMERA, K, right, np.array([0.0, 1.0, 0.0])))
+    mask = np.ones((SIZE, SIZE), np.int64)
+    normals = cov.surface_normals(View("s.png", PLANE_CAMERA, K, mask, depth))
+    assert np.abs(depth[:, SIZE // 2] - depth[:, SIZE // 2 - 1]).min() > 0.5  # a step at every row
+    assert angle_deg(normals[:, : SIZE // 2], left).max() < 1.0
+    assert angle_deg(normals[:, SIZE // 2:], right).max() < 1.0
+    # the right plane through the left one's point at the seam's middle row: two instances meeting there without
+    # a step; the mask keeps the tangents on each instance's side
+    seam = cov.backproject(np.array([SIZE // 2]), np.array([SIZE // 2]), depth[SIZE // 2:SIZE // 2 + 1, SIZE // 2 - 1],
+                           K, PLANE_CAMERA)[0]
+    depth[:, SIZE // 2:] = plane_depth(PLANE_CAMERA, K, right, seam)[:, SIZE // 2:]
+    mask[:, SIZE // 2:] = 2
+    normals = cov.surface_normals(View("s.png", PLANE_CAMERA, K, mask, depth))
+    assert angle_deg(normals[:, : SIZE // 2], left).max() < 1.0
+    assert angle_deg(normals[:, SIZE // 2:], right).max() < 1.0
+    blended = cov.surface_normals(View("s.png", PLANE_CAMERA, K, np.ones_like(mask), depth))
+    assert angle_deg(blended[:, SIZE // 2 - 1: SIZE // 2 + 1], np.stack([left, right])).max() > 10.0  # one instance
+
+
+def test_normals_of_thin_parts_face_the_camera():
+    K = intrinsics(HEAD_ON_F)
+    true = np.array([0.0, -1.0, 0.0])
+    full = plane_depth(PLANE_CAMERA, K, true, np.zeros(3))
+    depth = np.zeros_like(full)
+    depth[4:20, 10] = full[4:20, 10]  # a column one pixel wide: a tangent along the rows only
+    depth[25, 25] = full[25, 25]  # a lone pixel: no tangent
+    normals = cov.surface_normals(View("l.png", PLANE_CAMERA, K, np.ones((SIZE, SIZE), np.int64), depth))
+    points = cov.backproject(np.array([12, 25]), np.array([10, 25]), depth[[12, 25], [10, 25]], K, PLANE_CAMERA)
+    to_camera = PLANE_CAMERA[:3, 3] - points
+    to_camera /= np.linalg.norm(to_camera, axis=-1, keepdims=True)
+    assert angle_deg(normals[25, 25], to_camera[1]) < 1e-6
+    column = normals[12, 10]
+    tangent = cov.backproject(np.array([13]), np.array([10]), depth[13:14, 10], K, PLANE_CAMERA)[0] - points[0]
+    tangent /= np.linalg.norm(tangent)
+    expected = to_camera[0] - np.dot(to_camera[0], tangent) * tangent  # across the column, towards the camera
+    assert angle_deg(column, expected / np.linalg.norm(expected)) < 1e-6
+    assert (normals[depth == 0] == 0).all()
+
+
+def test_the_suite_carries_the_sharp_classes_beside_the_visible_ones(capsys):
+    from splatreplace_ns.tools.bench.suite import summarise
+    from splatreplace_ns.tools.bench.suite_output import print_suite, shared_gain_cell
+
+    metrics = {"psnr_own": 30.0, "psnr_shared": 25.0, "psnr_unseen": None, "psnr_own_sharp": 31.0,
+               "psnr_shared_sharp": 26.0, "psnr_unseen_sharp": None,
+               "coverage": {"pixels": {"own": 390, "shared": 10, "unseen": 0},
+                            "sharp": {"pixels": {"own": 200, "shared": 200, "unseen": 0}, "footprint_ratio": 2.0}}}
+    ours = scores.coverage_figures(metrics)
+    assert ours["sharp"] == {"own": 31.0, "shared": 26.0, "unseen": None, "footprint_ratio": 2.0,
+                             "pixels": {"own": 200, "shared": 200, "unseen": 0}}
+    assert scores.coverage_figures({}) is None
+    assert "sharp" not in scores.coverage_figures({**metrics, "coverage": {"pixels": {}}})
+    baseline = {**ours, "shared": 24.0, "sharp": {**ours["sharp"], "shared": 24.5}}
+    row = compare_coverage(baseline, ours)
+    assert row["shared"]["gain"] == pytest.approx(1.0) and row["sharp"]["shared"]["gain"] == pytest.approx(1.5)
+    assert row["sharp"]["pixel_share"]["shared"] == 0.5 and row["sharp"]["footprint_ratio"] == 2.0
+    assert shared_gain_cell(row["sharp"]) == "+1.50 (50 %)"
+    # a defaults' result from before the sharp classes: the variant's sharp gain is unknown, the rest is not
+    old = compare_coverage({k: baseline[k] for k in ("own", "shared", "unseen")}, ours)
+    assert old["shared"]["gain"] == pytest.approx(1.0) and old["sharp"]["shared"]["gain"] is None
+    assert "baseline" in old["sharp"]["unavailable"]
+    assert scores.baseline_coverage(row) == {"own": 30.0, "shared": 24.0, "unseen": None,
+                                          "sharp": {"own": 31.0, "shared": 24.5, "unseen": None}}
+    assert "sharp" not in scores.baseline_coverage(old)
+
+    figures = {"psnr": 20.0, "psnr_masked": 18.0, "ssim": 0.8, "ssim_masked": 0.7}
+    rows = [{"seed": seed, "scene": {"groups": [{"count": 2, "cls": "box"}]}, "baseline": figures, "ours": figures,
+             "gain_masked": 0.0, "gain_full": 0.0, "per_instance": {}, "segmentation_miou": None,
+             "registration": {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": [],
+                              "wrong": []},
+             "time_s": dict.fromkeys(("base", "contrastive", "segmentation", "registration", "finetune"), 1.0),
+             "coverage": coverage}
+            for seed, coverage in ((0, row), (1, None))]
+    summary = summarise(rows)
+    assert summary["coverage_sharp_gain_mean"] == {"own": pytest.approx(0.0), "shared": pytest.approx(1.5),
+                                                   "unseen": None}
+    result = {"split": "dev", "parameters": {"res": "8x8", "base_iterations": 1, "contrastive_iterations": 1,
+                                             "finetune_iterations": 1, "baseline_iterations": 3},
+              "scenes": rows, "summary": summary, "time_s": 60.0}
+    print_suite(result)
+    out = capsys.readouterr().out
+    assert "gain shared (sharp)" in out and "+1.50 (50 %)" in out and "+1.00 (2 %)" in out
+    assert "seen well: own +0.00 dB, shared +1.50 dB, unseen n/a" in out

@@ -1,8 +1,14 @@
 """Where a test view's instance pixels were seen in training: by their own copy, only by another copy, or never.
 
+In: a dataset with ground truth (true z-depth, instance masks, object poses and classes: the synthetic scenes of
+``tools/sim``), read from its ``transforms.json`` (:func:`read_coverage_inputs`), and the names of its training
+and test views. Out: :class:`Coverage`, one label map per test view (0 none, 1 own, 2 shared, 3 unseen) with the
+pixel counts per instance, by visibility and (``Coverage.sharp``) by being seen well; or None and the reason it is
+unavailable. :func:`cached_coverage` computes it once per dataset, split and footprint ratio in a process. The
+PSNR per class and what ``ns-eval`` and the bench report of it are in :mod:`splatreplace_ns.eval.coverage_scores`.
+
 The shared template's promise (paper §4.3) is that a part of an object the capture saw on one copy can be
-rendered on every copy. On a dataset with ground truth (depth, instance masks, object poses: the synthetic
-scenes of ``tools/sim``), each instance pixel ``p`` of copy ``i`` in a test view is classed:
+rendered on every copy. Each instance pixel ``p`` of copy ``i`` in a test view is classed:
 
 * back-project ``p`` with the true z-depth to a world point ``X`` and map it to the class's canonical frame,
   ``x = P_i⁻¹ X`` (copies of one class share one canonical shape);
@@ -13,12 +19,19 @@ scenes of ``tools/sim``), each instance pixel ``p`` of copy ``i`` in a test view
 * **unseen** (3): neither. Label 0: background, or an instance pixel that cannot be classed (no depth there, or
   the instance has no pose).
 
-The diagnostic needs true depth, ground-truth masks and poses; without them it is unavailable (None and the
-reason), never estimated. Masked PSNR over each class's pixels, pooled over the test views the way
-``psnr_per_instance`` pools (sum of squared error over all views, then PSNR), says where a method gains:
-the template should gain on *shared* pixels, and nothing can be expected on *unseen* ones.
+Visibility alone says little on scenes whose training path keeps to one side: nearly every surface point is
+visible in *some* training view of its own copy, if only at a grazing angle or from far away. A second classing
+beside the first asks whether a point was **seen well**: visible as above, and with the training view's pixel
+footprint there (:func:`footprint`: the size on the surface of one pixel) at most ``footprint_ratio`` times the test
+view's footprint at the same point. The surface normal the footprints need comes from the test view's true depth
+(:func:`surface_normals`) and is mapped to copy ``j`` like the point (``R_j R_i^T n``). The classes, in
+``Coverage.sharp``: **own** (seen well on its own copy), **shared** (seen well only on another copy; possibly seen
+badly on its own), **unseen** (seen well on none; possibly seen badly). ``ns-eval`` reports them as
+``psnr_own_sharp``, ``psnr_shared_sharp`` and ``psnr_unseen_sharp``.
 
-A class's canonical frame is taken as given: a symmetric class's points are not matched to their mirror images.
+The diagnostic needs true depth, ground-truth masks and poses; without them it is unavailable (None and the
+reason), never estimated. A class's canonical frame is taken as given: a symmetric class's points are not
+matched to their mirror images.
 """
 
 from __future__ import annotations
@@ -30,9 +43,6 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-import torch
-
-from splatreplace_ns.eval.metrics import mse_to_psnr, squared_error_by_label
 
 NONE, OWN, SHARED, UNSEEN = 0, 1, 2, 3
 CLASS_NAMES = {OWN: "own", SHARED: "shared", UNSEEN: "unseen"}
@@ -43,6 +53,10 @@ DEPTH_TOLERANCE_ABS = 0.005
 """Absolute part of the depth margin, in the dataset's world units (metres for the sim scenes)."""
 NEAR = 1e-6
 """Points closer than this to a camera's image plane are not in its view."""
+FOOTPRINT_RATIO = 2.0
+"""A training view sees a point well when its pixel footprint there is at most this many times the test view's."""
+MIN_COS = 0.1
+"""Floor of |cos θ| in :func:`footprint` (θ: between the viewing ray and the surface normal)."""
 
 PERSPECTIVE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -83,7 +97,12 @@ class Coverage:
     per_instance: Dict[int, Dict[str, int]]
     """{instance id: {"own", "shared", "unseen", "unclassified": pixels over all test views}}."""
     wall_s: float
-    """Seconds spent classing (reading the files not included)."""
+    """Seconds spent classing (reading the files not included; both classings when :attr:`sharp` is given)."""
+    sharp: Optional["Coverage"] = None
+    """The same classes for points *seen well* (module docstring), or None when not classed."""
+    footprint_ratio: Optional[float] = None
+    """The largest training-to-test footprint ratio that counts as seen well: on :attr:`sharp` and on the
+    classing that holds it."""
 
     def pixels(self) -> Dict[str, int]:
         """{"own", "shared", "unseen": pixels over all test views}."""
@@ -145,80 +164,143 @@ def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: int, heig
     return rows, cols, z, inside
 
 
-def visible_in_views(points: np.ndarray, ids: np.ndarray, views: Sequence[View]) -> np.ndarray:
-    """Whether each point is seen on its instance by at least one view.
+def footprint(points: np.ndarray, normals: np.ndarray, eye: np.ndarray, z: np.ndarray, focal: float) -> np.ndarray:
+    """Linear size on the surface of one pixel of a view at each point: ``z / (focal · max(|cos θ|, MIN_COS))``.
+
+    θ is the angle between the viewing ray and the surface normal: a pixel's cone, ``z / focal`` wide at the
+    point, stretches by ``1 / cos θ`` along the slope of a surface seen aslant. That stretch grows without bound
+    towards a grazing view (θ → 90°), where it would also hang on the last degree of an estimated normal; the
+    floor at ``MIN_COS`` = 0.1 (θ ≈ 84°) keeps it finite and counts every steeper view as ten times the
+    head-on footprint, already more than any useful ``footprint_ratio`` allows for a view at the same distance.
+
+    Args:
+        points: (N, 3) world; normals: (N, 3) unit world normals; eye: (3,) the view's camera centre;
+        z: (N,) the points' z-depths in the view; focal: the view's focal length in pixels (the smaller of
+        fx and fy: the larger side of a pixel).
+    Returns:
+        (N,) footprints, in world units.
+    """
+    rays = points - eye
+    cos = np.abs(np.sum(rays * normals, axis=-1)) / np.maximum(np.linalg.norm(rays, axis=-1), NEAR)
+    return z / (focal * np.maximum(cos, MIN_COS))
+
+
+def surface_normals(view: View) -> np.ndarray:
+    """Unit world normals, facing the camera, of the surface a view sees, from its true depth.
+
+    Each pixel's point (the centre back-projected with its depth) gets a tangent along the rows and one along the
+    columns, each the difference to a neighbour on the same instance (same mask value) with a depth: of the two
+    one-sided differences the one with the smaller depth jump, so that a pixel on the rim of a surface takes its
+    tangent from its own side of a depth discontinuity rather than across it. The normal is the cross product
+    of the two tangents. A pixel with such a neighbour along only one of the two (a part one pixel across, a
+    table's leg) gets the normal perpendicular to that tangent that faces the camera most; one with none, the
+    normal facing the camera (the direction to the camera centre).
+
+    Args:
+        view: the view (its depth, mask, K and c2w).
+    Returns:
+        (H, W, 3) float64, zeros where the view has no depth.
+    """
+    height, width = view.depth.shape
+    rows, cols = np.mgrid[0:height, 0:width]
+    depth = view.depth
+    points = backproject(rows.ravel(), cols.ravel(), depth.ravel(), view.K, view.c2w).reshape(height, width, 3)
+    valid = depth > 0
+
+    def tangent(axis: int) -> Tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) difference towards the next pixel along ``axis`` and (H, W) whether there is one."""
+        lo, hi = [slice(None)] * 2, [slice(None)] * 2
+        lo[axis], hi[axis] = slice(None, -1), slice(1, None)
+        lo, hi = tuple(lo), tuple(hi)
+        step = points[hi] - points[lo]  # the link between pixel k and k + 1
+        link = valid[lo] & valid[hi] & (view.mask[lo] == view.mask[hi])
+        jump = np.abs(depth[hi] - depth[lo])
+        forward, backward = np.zeros_like(points), np.zeros_like(points)
+        forward_ok, backward_ok = np.zeros(depth.shape, bool), np.zeros(depth.shape, bool)
+        forward_jump, backward_jump = np.full(depth.shape, np.inf), np.full(depth.shape, np.inf)
+        forward[lo], forward_ok[lo], forward_jump[lo] = step, link, jump
+        backward[hi], backward_ok[hi], backward_jump[hi] = step, link, jump
+        use_backward = backward_ok & (~forward_ok | (backward_jump < forward_jump))
+        return np.where(use_backward[..., None], backward, forward), forward_ok | backward_ok
+
+    along_cols, has_cols = tangent(1)
+    along_rows, has_rows = tangent(0)
+    to_camera = view.c2w[:3, 3] - points
+    to_camera /= np.maximum(np.linalg.norm(to_camera, axis=-1, keepdims=True), NEAR)
+    # one tangent only (a thin part, one pixel across): the normal perpendicular to it that faces the camera most
+    single = np.where(has_cols[..., None], along_cols, along_rows)
+    single /= np.maximum(np.linalg.norm(single, axis=-1, keepdims=True), NEAR)
+    across = to_camera - np.sum(to_camera * single, axis=-1, keepdims=True) * single
+    across_length = np.linalg.norm(across, axis=-1)
+    across = np.where((has_cols ^ has_rows)[..., None] & (across_length > 1e-3)[..., None],
+                      across / np.maximum(across_length, NEAR)[..., None], to_camera)
+    normals = np.cross(along_cols, along_rows)
+    length = np.linalg.norm(normals, axis=-1)
+    estimated = has_cols & has_rows & (length > 0)
+    normals = np.where(estimated[..., None], normals / np.maximum(length, NEAR)[..., None], across)
+    normals *= np.where(np.sum(normals * to_camera, axis=-1) < 0, -1.0, 1.0)[..., None]  # facing the camera
+    return np.where(valid[..., None], normals, 0.0)
+
+
+def seen_in_views(points: np.ndarray, ids: np.ndarray, views: Sequence[View], normals: Optional[np.ndarray] = None,
+                  max_footprint: Optional[np.ndarray] = None) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """Whether each point is seen on its instance by at least one view, and whether one of those sees it well.
 
     A view sees a point when it projects inside it, the view's mask holds the point's instance there, the view
     has a depth there and that depth agrees with the point's (:func:`depth_tolerance`). A point hidden behind
     another surface of the same instance fails the depth test; one hidden by another object fails the mask test.
+    It sees the point well when it also sees it and its :func:`footprint` there is at most ``max_footprint``.
+
+    Args:
+        points: (N, 3) world; ids: (N,) the instance each point must be seen on; views: the candidate views;
+        normals: (N, 3) unit world normals and max_footprint: (N,) the largest footprint that counts as seen
+            well, both given or both None (then only visibility is tested).
+    Returns:
+        visible: (N,) bool; well: (N,) bool, or None without ``max_footprint``.
+    """
+    visible = np.zeros(len(points), dtype=bool)
+    well = None if max_footprint is None else np.zeros(len(points), dtype=bool)
+    for view in views:
+        todo = np.flatnonzero(~(visible if well is None else well))  # a point settled once needs no further view
+        if len(todo) == 0:
+            break
+        height, width = view.mask.shape
+        focal = min(view.K[0, 0], view.K[1, 1])
+        rows, cols, z, inside = project(points[todo], view.K, view.c2w, width, height)
+        surface = view.depth[rows, cols]
+        hit = (inside & (view.mask[rows, cols] == ids[todo]) & (surface > 0)
+               & (np.abs(z - surface) <= depth_tolerance(surface, focal)))
+        seen = todo[hit]
+        visible[seen] = True
+        if well is not None and len(seen):
+            size = footprint(points[seen], normals[seen], view.c2w[:3, 3], z[hit], focal)
+            well[seen[size <= max_footprint[seen]]] = True
+    return visible, well
+
+
+def visible_in_views(points: np.ndarray, ids: np.ndarray, views: Sequence[View]) -> np.ndarray:
+    """Whether each point is seen on its instance by at least one view (:func:`seen_in_views`).
 
     Args:
         points: (N, 3) world; ids: (N,) the instance each point must be seen on; views: the candidate views.
     Returns:
         (N,) bool.
     """
-    seen = np.zeros(len(points), dtype=bool)
-    for view in views:
-        todo = np.flatnonzero(~seen)  # a point seen once needs no further view
-        if len(todo) == 0:
-            break
-        height, width = view.mask.shape
-        rows, cols, z, inside = project(points[todo], view.K, view.c2w, width, height)
-        surface = view.depth[rows, cols]
-        hit = (inside & (view.mask[rows, cols] == ids[todo]) & (surface > 0)
-               & (np.abs(z - surface) <= depth_tolerance(surface, min(view.K[0, 0], view.K[1, 1]))))
-        seen[todo[hit]] = True
-    return seen
+    return seen_in_views(points, ids, views)[0]
 
 
-def classify(inputs: CoverageInputs) -> Coverage:
-    """Own / shared / unseen label of every instance pixel of every test view (module docstring).
+def _class_labels(seen: np.ndarray, own_row: np.ndarray) -> np.ndarray:
+    """(N,) uint8 own / shared / unseen from ``seen[k, n]`` (copy k's version of point n) and each point's row."""
+    own = seen[own_row, np.arange(seen.shape[1])]
+    shared = (seen.sum(axis=0) - own) > 0
+    return np.where(own, OWN, np.where(shared, SHARED, UNSEEN)).astype(np.uint8)
 
-    Returns:
-        :class:`Coverage`: one (H, W) uint8 label map per test view and the per-instance counts.
-    """
-    start = time.perf_counter()
-    labels = [np.zeros(v.mask.shape, dtype=np.uint8) for v in inputs.test]
+
+def _count_per_instance(test: Sequence[View], labels: Sequence[np.ndarray]) -> Dict[int, Dict[str, int]]:
+    """{instance id: {"own", "shared", "unseen", "unclassified": pixels over all test views}}."""
     per_instance = {int(i): {"own": 0, "shared": 0, "unseen": 0, "unclassified": 0}
-                    for v in inputs.test for i in np.unique(v.mask) if i > 0}
-    by_class: Dict[str, List[int]] = {}
-    for iid in sorted(inputs.poses):
-        by_class.setdefault(inputs.classes.get(iid, ""), []).append(iid)
-    inverse = {iid: np.linalg.inv(pose) for iid, pose in inputs.poses.items()}
-
-    for copies in by_class.values():
-        # every pixel of the class's copies in every test view, in one batch
-        where, canonical, owner = [], [], []
-        for t, view in enumerate(inputs.test):
-            rows, cols = np.nonzero(np.isin(view.mask, copies) & (view.depth > 0))
-            if len(rows) == 0:
-                continue
-            world = backproject(rows, cols, view.depth[rows, cols], view.K, view.c2w)
-            ids = view.mask[rows, cols]
-            local = np.empty_like(world)
-            for iid in np.unique(ids):
-                sel = ids == iid
-                local[sel] = world[sel] @ inverse[int(iid)][:3, :3].T + inverse[int(iid)][:3, 3]
-            where.append(np.stack([np.full(len(rows), t), rows, cols], axis=1))
-            canonical.append(local)
-            owner.append(ids)
-        if not where:
-            continue
-        where, canonical, owner = np.concatenate(where), np.concatenate(canonical), np.concatenate(owner)
-        seen = np.zeros((len(copies), len(owner)), dtype=bool)  # seen[k, n]: copy k's version of point n
-        for k, jid in enumerate(copies):
-            pose = inputs.poses[jid]
-            placed = canonical @ pose[:3, :3].T + pose[:3, 3]
-            seen[k] = visible_in_views(placed, np.full(len(owner), jid), inputs.train)
-        own_row = np.searchsorted(np.asarray(copies), owner)
-        own = seen[own_row, np.arange(len(owner))]
-        shared = (seen.sum(axis=0) - own) > 0
-        label = np.where(own, OWN, np.where(shared, SHARED, UNSEEN)).astype(np.uint8)
-        for t in np.unique(where[:, 0]):
-            sel = where[:, 0] == t
-            labels[int(t)][where[sel, 1], where[sel, 2]] = label[sel]
-
-    for view, label in zip(inputs.test, labels):
+                    for v in test for i in np.unique(v.mask) if i > 0}
+    for view, label in zip(test, labels):
         for iid in per_instance:
             on = view.mask == iid
             if not on.any():
@@ -228,7 +310,92 @@ def classify(inputs: CoverageInputs) -> Coverage:
             entry["unclassified"] += int(counts[NONE])
             for value, name in CLASS_NAMES.items():
                 entry[name] += int(counts[value])
-    return Coverage([v.name for v in inputs.test], labels, per_instance, time.perf_counter() - start)
+    return per_instance
+
+
+def classify(inputs: CoverageInputs, footprint_ratio: Optional[float] = FOOTPRINT_RATIO) -> Coverage:
+    """Own / shared / unseen label of every instance pixel of every test view (module docstring), by visibility
+    and, unless ``footprint_ratio`` is None, by being seen well (``Coverage.sharp``).
+
+    Args:
+        inputs: the views, poses and classes.
+        footprint_ratio: a training view sees a point well when its footprint there is at most this many times
+            the test view's; None: the visibility classing only.
+    Returns:
+        :class:`Coverage`: one (H, W) uint8 label map per test view and the per-instance counts, and the same
+        for the points seen well under ``sharp``.
+    """
+    start = time.perf_counter()
+    sharp = footprint_ratio is not None
+    labels = [np.zeros(v.mask.shape, dtype=np.uint8) for v in inputs.test]
+    labels_sharp = [np.zeros(v.mask.shape, dtype=np.uint8) for v in inputs.test]
+    by_class: Dict[str, List[int]] = {}
+    for iid in sorted(inputs.poses):
+        by_class.setdefault(inputs.classes.get(iid, ""), []).append(iid)
+    inverse = {iid: np.linalg.inv(pose) for iid, pose in inputs.poses.items()}
+    test_normals = [surface_normals(v) if sharp else None for v in inputs.test]
+
+    for copies in by_class.values():
+        # every pixel of the class's copies in every test view, in one batch
+        where, canonical, owner, canonical_normals, limit = [], [], [], [], []
+        for t, view in enumerate(inputs.test):
+            rows, cols = np.nonzero(np.isin(view.mask, copies) & (view.depth > 0))
+            if len(rows) == 0:
+                continue
+            depth = view.depth[rows, cols]
+            world = backproject(rows, cols, depth, view.K, view.c2w)
+            ids = view.mask[rows, cols]
+            local = np.empty_like(world)
+            for iid in np.unique(ids):
+                sel = ids == iid
+                local[sel] = world[sel] @ inverse[int(iid)][:3, :3].T + inverse[int(iid)][:3, 3]
+            if sharp:
+                normals = test_normals[t][rows, cols]
+                focal = min(view.K[0, 0], view.K[1, 1])
+                limit.append(footprint_ratio * footprint(world, normals, view.c2w[:3, 3], depth, focal))
+                local_normals = np.empty_like(normals)
+                for iid in np.unique(ids):  # normals map by the inverse transpose: n_canonical = A_iᵀ n
+                    sel = ids == iid
+                    local_normals[sel] = normals[sel] @ inputs.poses[int(iid)][:3, :3]
+                canonical_normals.append(local_normals)
+            where.append(np.stack([np.full(len(rows), t), rows, cols], axis=1))
+            canonical.append(local)
+            owner.append(ids)
+        if not where:
+            continue
+        where, canonical, owner = np.concatenate(where), np.concatenate(canonical), np.concatenate(owner)
+        if sharp:
+            canonical_normals, limit = np.concatenate(canonical_normals), np.concatenate(limit)
+        seen = np.zeros((len(copies), len(owner)), dtype=bool)  # seen[k, n]: copy k's version of point n
+        seen_well = np.zeros_like(seen)
+        for k, jid in enumerate(copies):
+            pose = inputs.poses[jid]
+            placed = canonical @ pose[:3, :3].T + pose[:3, 3]
+            placed_normals = None
+            if sharp:  # n_j = A_j⁻ᵀ n_canonical (R_j R_iᵀ n for rigid poses)
+                placed_normals = canonical_normals @ inverse[jid][:3, :3]
+                placed_normals /= np.maximum(np.linalg.norm(placed_normals, axis=-1, keepdims=True), NEAR)
+            visible, well = seen_in_views(placed, np.full(len(owner), jid), inputs.train, placed_normals,
+                                          limit if sharp else None)
+            seen[k] = visible
+            if sharp:
+                seen_well[k] = well
+        own_row = np.searchsorted(np.asarray(copies), owner)
+        label, label_sharp = _class_labels(seen, own_row), _class_labels(seen_well, own_row)
+        for t in np.unique(where[:, 0]):
+            sel = where[:, 0] == t
+            labels[int(t)][where[sel, 1], where[sel, 2]] = label[sel]
+            labels_sharp[int(t)][where[sel, 1], where[sel, 2]] = label_sharp[sel]
+
+    names = [v.name for v in inputs.test]
+    per_instance = _count_per_instance(inputs.test, labels)
+    per_instance_sharp = _count_per_instance(inputs.test, labels_sharp) if sharp else None
+    wall_s = time.perf_counter() - start
+    if not sharp:
+        return Coverage(names, labels, per_instance, wall_s)
+    return Coverage(names, labels, per_instance, wall_s,
+                    sharp=Coverage(names, labels_sharp, per_instance_sharp, wall_s, footprint_ratio=footprint_ratio),
+                    footprint_ratio=footprint_ratio)
 
 
 # ------------------------------------------------------------------ reading a dataset's ground truth
@@ -324,169 +491,14 @@ _CACHE: Dict[Tuple, Tuple[Optional[Coverage], Optional[str]]] = {}
 
 
 def cached_coverage(data: Path, train_names: Optional[Sequence[str]] = None,
-                    test_names: Optional[Sequence[str]] = None) -> Tuple[Optional[Coverage], Optional[str]]:
-    """:func:`classify` of :func:`read_coverage_inputs`, computed once per dataset file and split in a process
-    (every evaluation of every run on the dataset shares the labels)."""
+                    test_names: Optional[Sequence[str]] = None, footprint_ratio: Optional[float] = FOOTPRINT_RATIO
+                    ) -> Tuple[Optional[Coverage], Optional[str]]:
+    """:func:`classify` of :func:`read_coverage_inputs`, computed once per dataset file, split and footprint ratio
+    in a process (every evaluation of every run on the dataset shares the labels)."""
     path = Path(data) if Path(data).suffix == ".json" else Path(data) / "transforms.json"
     stamp = path.stat().st_mtime_ns if path.exists() else None
-    key = (str(path.resolve()), stamp, tuple(train_names or ()), tuple(test_names or ()))
+    key = (str(path.resolve()), stamp, tuple(train_names or ()), tuple(test_names or ()), footprint_ratio)
     if key not in _CACHE:
         inputs, why = read_coverage_inputs(path, train_names, test_names)
-        _CACHE[key] = (classify(inputs), None) if inputs is not None else (None, why)
+        _CACHE[key] = (classify(inputs, footprint_ratio), None) if inputs is not None else (None, why)
     return _CACHE[key]
-
-
-# ------------------------------------------------------------------ scoring
-def add_view_error(totals: Dict[int, List], pred: torch.Tensor, gt: torch.Tensor, labels: torch.Tensor
-                   ) -> Dict[int, List]:
-    """``totals`` with one view's squared error per coverage class added (the pooling of ``psnr_per_instance``).
-
-    Args:
-        totals: {class label: [summed squared error, pixels]} so far (updated in place and returned).
-        pred, gt: (H, W, C) in [0, 1]; labels: (H, W) coverage labels.
-    """
-    for label, (sse, count) in squared_error_by_label(pred, gt, labels).items():
-        if label in CLASS_NAMES:
-            entry = totals.setdefault(label, [0.0, 0])
-            entry[0] += sse
-            entry[1] += count
-    return totals
-
-
-def psnr_by_class(totals: Dict[int, List]) -> Dict:
-    """{"own", "shared", "unseen": PSNR of the pooled error (None without pixels), "pixels": {same: count}}."""
-    out: Dict = {}
-    pixels = {}
-    for label, name in CLASS_NAMES.items():
-        sse, count = totals.get(label, (0.0, 0))
-        out[name] = mse_to_psnr(sse / count) if count else None
-        pixels[name] = int(count)
-    out["pixels"] = pixels
-    return out
-
-
-def coverage_psnr(label_maps: Sequence[torch.Tensor], images: Sequence[Tuple[torch.Tensor, torch.Tensor]]) -> Dict:
-    """Masked PSNR per coverage class over all test views, the squared error pooled before the PSNR.
-
-    Args:
-        label_maps: per view (H, W) coverage labels; images: per view (prediction, ground truth), (H, W, C)
-            in [0, 1], the same views in the same order.
-    Returns:
-        :func:`psnr_by_class`'s dict.
-    """
-    if len(label_maps) != len(images):
-        raise ValueError(f"{len(label_maps)} label maps for {len(images)} image pairs")
-    totals: Dict[int, List] = {}
-    for labels, (pred, gt) in zip(label_maps, images):
-        add_view_error(totals, pred, gt, torch.as_tensor(np.asarray(labels)).long())
-    return psnr_by_class(totals)
-
-
-class CoverageRecorder:
-    """Pools each eval view's squared error per coverage class while nerfstudio's eval loop runs.
-
-    Wraps ``model.get_image_metrics_and_images`` like ``eval.report.EvalViewRecorder`` and compares the same
-    images (the rendering against the ground truth composited on the rendered background). Entered inside that
-    recorder, it hands the method back to it on exit. The label maps come from :func:`cached_coverage` for the
-    datamanager's training and eval views, put into the geometry each eval camera renders.
-    """
-
-    def __init__(self, model, datamanager, enabled: bool = True) -> None:
-        self.model, self.datamanager, self.enabled = model, datamanager, enabled
-        self.coverage: Optional[Coverage] = None
-        self.reason: Optional[str] = None
-        self.totals: Dict[int, List] = {}
-        self._rendered: Dict[int, torch.Tensor] = {}
-        self._previous = None
-
-    def __enter__(self) -> "CoverageRecorder":
-        if not self.enabled:
-            return self
-        dm = self.datamanager
-        train = [Path(str(f)).name for f in dm.train_dataset.image_filenames]
-        test = [Path(str(f)).name for f in dm.eval_dataset.image_filenames]
-        self.coverage, self.reason = cached_coverage(Path(dm.get_datapath()), train, test)
-        if self.coverage is None:
-            return self
-        model = self.model
-        self._previous = model.__dict__.get("get_image_metrics_and_images")
-        original = model.get_image_metrics_and_images
-
-        def record(outputs, batch):
-            result = original(outputs, batch)
-            gt = model.composite_with_background(model.get_gt_img(batch["image"]), outputs["background"])
-            add_view_error(self.totals, outputs["rgb"], gt, self.labels_as_rendered(int(batch["image_idx"])))
-            return result
-
-        model.get_image_metrics_and_images = record
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.coverage is None:
-            return
-        if self._previous is not None:  # the outer recorder's wrapper
-            self.model.get_image_metrics_and_images = self._previous
-        else:
-            del self.model.get_image_metrics_and_images
-
-    def labels_as_rendered(self, index: int) -> torch.Tensor:
-        """(h, w) int64 coverage labels of eval view ``index`` in the geometry its camera renders."""
-        if index not in self._rendered:
-            labels = self.coverage.labels[index].astype(np.int64)
-            self._rendered[index] = self.datamanager.mask_as_rendered(self.datamanager.eval_dataset, index, labels)
-        return self._rendered[index]
-
-    def add_to(self, metrics: Dict) -> Dict:
-        """``metrics`` with ``psnr_own``, ``psnr_shared``, ``psnr_unseen`` and a ``coverage`` section (pixels per
-        class, per-instance counts, the definition), or the reason under ``unavailable["coverage"]``."""
-        if not self.enabled:
-            return metrics
-        if self.coverage is None:
-            metrics.setdefault("unavailable", {})["coverage"] = self.reason
-            return metrics
-        scores = psnr_by_class(self.totals)
-        metrics.update({f"psnr_{name}": scores[name] for name in CLASS_NAMES.values()})
-        metrics["coverage"] = {
-            "pixels": scores["pixels"],
-            "per_instance": {str(k): v for k, v in sorted(self.coverage.per_instance.items())},
-            "definition": ("instance pixels of the test views: own = its point seen on the same copy in a training "
-                           "view, shared = seen only on another copy of its class (same canonical point), unseen = "
-                           "neither; PSNR of the squared error pooled over each class's pixels in all eval views"),
-            "depth_tolerance": f"{DEPTH_TOLERANCE_PIXELS} pixel footprints (depth / focal) + {DEPTH_TOLERANCE_ABS}",
-            "wall_s": self.coverage.wall_s,
-        }
-        return metrics
-
-
-def compare_coverage(baseline: Optional[Dict], ours: Optional[Dict]) -> Optional[Dict]:
-    """Per coverage class the PSNR of two methods on the same test views and the gain, with the pixel shares.
-
-    Args:
-        baseline, ours: {"own", "shared", "unseen": PSNR or None, "pixels": {same: count}} (``coverage`` of
-            ``tools.bench.template.test_metrics``), or None where not measured.
-    Returns:
-        {"own" | "shared" | "unseen": {"baseline", "ours", "gain"}, "pixels", "pixel_share"} (a missing figure is
-        None, with ``unavailable`` saying which method lacks it), or None when ``ours`` has no coverage.
-    """
-    if not ours:
-        return None
-    out: Dict = {}
-    for name in CLASS_NAMES.values():
-        b, o = (baseline or {}).get(name), ours.get(name)
-        out[name] = {"baseline": b, "ours": o, "gain": None if b is None or o is None else o - b}
-    pixels = {name: int(ours.get("pixels", {}).get(name, 0)) for name in CLASS_NAMES.values()}
-    total = sum(pixels.values())
-    out["pixels"] = pixels
-    out["pixel_share"] = {name: (n / total if total else None) for name, n in pixels.items()}
-    if not baseline:
-        out["unavailable"] = "the baseline's PSNR per coverage class was not measured (a result from before it was)"
-    return out
-
-
-def mean_coverage_gains(rows: Sequence[Optional[Dict]]) -> Dict[str, Optional[float]]:
-    """{"own", "shared", "unseen": mean gain over the :func:`compare_coverage` results that have it, else None}."""
-    out: Dict[str, Optional[float]] = {}
-    for name in CLASS_NAMES.values():
-        gains = [row[name]["gain"] for row in rows if row and row.get(name, {}).get("gain") is not None]
-        out[name] = float(np.mean(gains)) if gains else None
-    return out

@@ -192,12 +192,14 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
     ) -> Dict:
         """nerfstudio's averages over the eval views plus the masked PSNR/SSIM; outside training (``ns-eval``,
         ``step=None``) also KID, the versions, segmentation and registration scores, the PSNR on own / shared /
-        unseen pixels (``splatreplace_ns.eval.coverage``) and ``unavailable`` (metric → reason), see
-        ``splatreplace_ns.eval.report``.
+        unseen pixels by visibility (``psnr_own``, ``psnr_shared``, ``psnr_unseen``) and on the same classes of
+        the points seen well, "sharp" (``psnr_own_sharp``, ``psnr_shared_sharp``, ``psnr_unseen_sharp``; the
+        classes in ``splatreplace_ns.eval.coverage``, the scores in ``splatreplace_ns.eval.coverage_scores``) and
+        ``unavailable`` (metric → reason), see ``splatreplace_ns.eval.report``.
 
         During training (``step`` given) only numbers are returned: the Trainer logs every entry as a scalar.
         """
-        from splatreplace_ns.eval.coverage import CoverageRecorder
+        from splatreplace_ns.eval.coverage_scores import CoverageRecorder
         from splatreplace_ns.eval.report import EvalViewRecorder, evaluation_report, json_safe
 
         with EvalViewRecorder(self.model, with_kid=step is None) as recorder, \

@@ -230,7 +230,7 @@ def _registration_summary(report: Optional[Dict], model_registration: Dict) -> D
 def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     """Generate (or reuse) one scene, train ours and the baseline, and score both."""
     from splatreplace_ns.tools.bench.template import test_metrics, train_ours_and_baseline
-    from splatreplace_ns.eval.coverage import compare_coverage
+    from splatreplace_ns.eval.coverage_scores import compare_coverage
     from splatreplace_ns.eval.report import registration_report, segmentation_report
     from splatreplace_ns.tools.sim.scene import class_size
 
@@ -346,6 +346,8 @@ def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
     Raises:
         FileNotFoundError: when that run has no result.json.
     """
+    from splatreplace_ns.eval.coverage_scores import baseline_coverage
+
     default = run_folder(cfg, data.name, default=True)
     saved = default / "result.json"
     if not saved.exists():
@@ -355,7 +357,7 @@ def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
     baseline = dict(previous["baseline"])
     baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
     if previous.get("coverage") and "unavailable" not in previous["coverage"]:  # absent from older results
-        baseline["coverage"] = {k: previous["coverage"][k]["baseline"] for k in ("own", "shared", "unseen")}
+        baseline["coverage"] = baseline_coverage(previous["coverage"])  # with "sharp" where it was measured
     return previous, baseline
 
 
@@ -387,8 +389,8 @@ def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
 def summarise(rows: List[Dict]) -> Dict:
     """Mean gain, worst scene's gain, share of scenes where ours is worse (masked PSNR), and the same for full
     images; instances that lost more than 1 dB; wrong or failed registrations; the mean gain on own, shared and
-    unseen pixels."""
-    from splatreplace_ns.eval.coverage import mean_coverage_gains
+    unseen pixels, by visibility and by being seen well."""
+    from splatreplace_ns.eval.coverage_scores import mean_coverage_gains
 
     masked = [r["gain_masked"] for r in rows if r["gain_masked"] is not None]
     full = [r["gain_full"] for r in rows if r["gain_full"] is not None]
@@ -408,6 +410,7 @@ def summarise(rows: List[Dict]) -> Dict:
         "refused_right": sum(len(r["registration"].get("refused_right", [])) for r in rows),
         "refused_wrong": sum(len(r["registration"].get("refused_wrong", [])) for r in rows),
         "coverage_gain_mean": mean_coverage_gains([r.get("coverage") for r in rows]),
+        "coverage_sharp_gain_mean": mean_coverage_gains([(r.get("coverage") or {}).get("sharp") for r in rows]),
         "segmentation_miou_mean": statistics.fmean(m) if (m := [r["segmentation_miou"] for r in rows
                                                                 if r["segmentation_miou"] is not None]) else None,
     }

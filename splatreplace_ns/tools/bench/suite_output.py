@@ -34,7 +34,8 @@ def print_suite(result: Dict) -> None:
                         f"+{result['parameters']['finetune_iterations']} vs 3DGS* "
                         f"{result['parameters']['baseline_iterations']} iterations)")
     columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "gain shared (px %)",
-               "masked SSIM", "mIoU", "rot. err. ° mean / max", "failed / wrong", "s: base / contr. / seg. / reg. / fine")
+               "gain shared (sharp)", "masked SSIM", "mIoU", "rot. err. ° mean / max", "failed / wrong",
+               "s: base / contr. / seg. / reg. / fine")
     for col in columns:
         table.add_column(col)
     for r in result["scenes"]:
@@ -47,6 +48,7 @@ def print_suite(result: Dict) -> None:
             f"[{colour}]({_fmt(gain, signed=True)})[/]",
             f"{_fmt(r['baseline']['psnr'])} → {_fmt(r['ours']['psnr'])} ({_fmt(r['gain_full'], signed=True)})",
             shared_gain_cell(r.get("coverage")),
+            shared_gain_cell((r.get("coverage") or {}).get("sharp")),
             f"{_fmt(r['baseline']['ssim_masked'], 3)} → {_fmt(r['ours']['ssim_masked'], 3)}",
             _fmt(r["segmentation_miou"], 3),
             f"{_fmt(reg['rotation_error_deg_mean'], 1)} / {_fmt(reg['rotation_error_deg_max'], 1)}",
@@ -68,11 +70,16 @@ def print_suite(result: Dict) -> None:
     if any(v is not None for v in gains.values()):  # where the gain comes from: pixels seen on another copy only
         console.print("mean gain by coverage of the test pixels: " + ", ".join(
             f"{k} " + ("n/a" if gains.get(k) is None else f"{gains[k]:+.2f} dB") for k in ("own", "shared", "unseen")))
+    gains = s.get("coverage_sharp_gain_mean") or {}
+    if any(v is not None for v in gains.values()):  # the same by where the test pixels were seen well
+        console.print("mean gain by where the test pixels were seen well: " + ", ".join(
+            f"{k} " + ("n/a" if gains.get(k) is None else f"{gains[k]:+.2f} dB") for k in ("own", "shared", "unseen")))
 
 
 def shared_gain_cell(coverage) -> str:
     """The table's cell for the gain on the pixels seen only on another copy, and their share of the instance
-    pixels: ``+0.52 (3 %)``; ``n/a`` without the diagnostic, ``— (0 %)`` without such pixels."""
+    pixels: ``+0.52 (3 %)``; ``n/a`` without the diagnostic, ``— (0 %)`` without such pixels. The same for the
+    pixels seen well only on another copy given ``coverage["sharp"]``."""
     if not coverage:
         return "n/a"
     share = coverage["pixel_share"].get("shared")

@@ -79,16 +79,18 @@ class BenchTemplateConfig:
 def test_metrics(pipeline) -> Dict[str, float]:
     """Average test-view metrics (what ``ns-eval`` reports), restricted to the table's figures, plus the
     per-instance PSNR when the dataset has instance masks, the PSNR on own / shared / unseen pixels
-    (``coverage``: {"own", "shared", "unseen", "pixels"}) when it has the ground truth for them, and each view's
+    (``coverage``: {"own", "shared", "unseen", "pixels", "sharp"}) when it has the ground truth for them, and each view's
     figures (``per_view``)."""
+    from splatreplace_ns.eval.coverage_scores import coverage_figures
+
     pipeline.eval()
     metrics = pipeline.get_average_eval_image_metrics()
     out = {k: (float(metrics[k]) if metrics.get(k) is not None else None) for k in METRICS}
     if "psnr_per_instance" in metrics:  # ground-truth instance id → PSNR over its pixels in the test views
         out["psnr_per_instance"] = metrics["psnr_per_instance"]
-    if "coverage" in metrics:  # PSNR over the test pixels seen on their own copy, only on another, or never
-        out["coverage"] = {**{k: metrics.get(f"psnr_{k}") for k in ("own", "shared", "unseen")},
-                           "pixels": metrics["coverage"]["pixels"]}
+    figures = coverage_figures(metrics)  # PSNR over the test pixels seen on their own copy, only on another, or never
+    if figures:
+        out["coverage"] = figures
     if "per_view" in metrics:
         out["per_view"] = [{k: row.get(k) for k in ("view", "image") + METRICS} for row in metrics["per_view"]]
     return out
