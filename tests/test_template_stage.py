@@ -237,3 +237,29 @@ def test_offsets_scaled_per_degree_are_exported_as_they_are_used(replaced, tmp_p
         model.config.offset_rest_scale = 1.0
         with torch.no_grad():
             offsets.copy_(saved)
+
+
+def test_world_shading_is_rendered_and_exported(replaced, tmp_path):
+    from splatreplace_ns.template.export import instanced_arrays, load_instanced, save_instanced
+
+    _, _, trainer = replaced
+    model = trainer.pipeline.model
+    assert model.class_shading.shape == (len(model.instance_table.classes), 4, 3)  # made with the templates
+    saved = model.class_shading.detach().clone()
+    try:
+        with torch.no_grad():
+            plain = model.composed_scene().sh.clone()
+            model.config.world_shading = True
+            assert torch.equal(model.composed_scene().sh, plain)  # it starts at gain 1
+            model.class_shading.copy_(0.3 * torch.randn_like(saved, generator=torch.Generator().manual_seed(1)))
+            scene = model.composed_scene()
+        background = scene.instance_id == 0
+        assert torch.equal(scene.sh[background], plain[background])  # the background keeps its own light
+        assert not torch.allclose(scene.sh[~background], plain[~background], atol=1e-3)
+        save_instanced(tmp_path / "shaded.npz", instanced_arrays(model, colour_tolerance=0.0))
+        composed = load_instanced(tmp_path / "shaded.npz").compose()
+        assert torch.allclose(composed.sh, scene.sh, atol=2e-3)  # float16 offsets
+    finally:
+        model.config.world_shading = False
+        with torch.no_grad():
+            model.class_shading.copy_(saved)

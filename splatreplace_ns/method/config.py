@@ -114,6 +114,7 @@ def splat_replace_trainer_config(
             "sh_offsets": _adam(0.0025),
             "instance_poses": _adam(1e-4),
             "instance_colour": _adam(0.0025),  # log gain per copy and channel: the rate of the colours
+            "class_shading": _adam(0.0025),  # log gain per class, channel and world-normal term
             "template_class": _adam(0.0),  # a label carried through densification, never optimised
             "exposure": _adam(1e-3),
             "sky": _adam(0.02),

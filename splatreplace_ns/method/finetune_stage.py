@@ -16,6 +16,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.template.revert import revert_instances, score_replaced_instances
+from splatreplace_ns.template.world_shading import SHADING_TERMS
 
 
 class FinetuneStage:
@@ -63,6 +64,9 @@ class FinetuneStage:
                               torch.zeros(len(table.ids), 3, device=model.means.device))
         model.instance_table = table
         model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)  # per stored Gaussian; see template_class
+        model.class_shading = torch.nn.Parameter(torch.zeros(len(table.classes), SHADING_TERMS, 3,
+                                                             device=model.means.device))  # gain 1 to start
+        self._rebind_optimizer((getattr(model, "optimizers", None) or {}).get("class_shading"), model.class_shading)
         model.stage = "finetune"
         model.finetune_start = start_step
         model.finetune_strategy, model.finetune_strategy_state = self._finetune_strategy()

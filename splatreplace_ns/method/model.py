@@ -37,6 +37,7 @@ from splatreplace_ns.method.model_templates import ReplacedScene
 from splatreplace_ns.method.sky import pixel_directions, sky_colour, sky_opacity_l1
 from splatreplace_ns.render import rasterize, resolve_backend, world_to_camera
 from splatreplace_ns.template.build import InstanceTable
+from splatreplace_ns.template.world_shading import SHADING_TERMS
 from splatreplace_ns.template.compose import instance_poses, offsets_l1
 
 allow_numpy_scalars_in_checkpoints()
@@ -82,6 +83,11 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Fine-tune one gain per colour channel for each replaced copy, applied to its whole colour (not in the paper):
     a copy's shade or tint, learned where its training views see it, then also holds on the parts of it only
     other copies' views saw, which the per-Gaussian offsets leave at the template's colour."""
+    world_shading: bool = False
+    """Fine-tune, per class, a shading in world coordinates shared by its copies, a colour gain per channel that
+    depends on each Gaussian's normal as the copy's pose turns it (``splatreplace_ns.template.world_shading``; not
+    in the paper): the light that fell on the template copy then stays with the world instead of turning with
+    every copy."""
     sky_background: Literal["auto", "on", "off"] = "auto"
     """Learn the sky as a background that depends on the elevation of each ray (``splatreplace_ns.method.sky``)
     instead of splatfacto's random training background. auto: on when the dataset says depth 0 is the sky
@@ -161,6 +167,7 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(torch.zeros(0, 6))  # per instance (ω, δt), see template.compose
         self.instance_colour_gain = Parameter(torch.zeros(0, 3))  # per instance log gain per channel (copy_colour_gain)
+        self.class_shading = Parameter(torch.zeros(0, SHADING_TERMS, 3))  # per class, world_shading
         if self.config.sky_degree < 0:
             raise ValueError(f"sky_degree must be >= 0, got {self.config.sky_degree}")
         # sky background (used only when uses_sky): Legendre coefficients per RGB channel, a grey sky to start
@@ -250,6 +257,8 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
                 current = self.instance_pose_delta
             elif name == "instance_colour":
                 current = self.instance_colour_gain
+            elif name == "class_shading":
+                current = self.class_shading
             else:
                 continue
             for group in optimizer.param_groups:
@@ -315,7 +324,9 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
             state_dict["instance_pose_delta"] = self.instance_pose_delta.detach().clone()
         if "instance_colour_gain" not in state_dict:  # checkpoints from before the colour gain: gain 1
             state_dict["instance_colour_gain"] = torch.zeros(len(state_dict["instance_pose_delta"]), 3)
-        for name in ("instance_pose_delta", "instance_colour_gain"):
+        if "class_shading" not in state_dict:  # checkpoints from before the world shading: none
+            state_dict["class_shading"] = torch.zeros(0, SHADING_TERMS, 3)
+        for name in ("instance_pose_delta", "instance_colour_gain", "class_shading"):
             setattr(self, name, Parameter(torch.zeros_like(state_dict[name], device=self.device)))
         if "sky_coefficients" not in state_dict:  # checkpoints from before the sky background: a grey sky
             state_dict["sky_coefficients"] = torch.zeros_like(self.sky_coefficients)
@@ -329,6 +340,7 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
             groups["exposure"] = [self.exposure]
         groups["instance_poses"] = [self.instance_pose_delta]
         groups["instance_colour"] = [self.instance_colour_gain]
+        groups["class_shading"] = [self.class_shading]
         groups["sky"] = [self.sky_coefficients]
         return groups
 

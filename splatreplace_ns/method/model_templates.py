@@ -40,6 +40,7 @@ class ReplacedScene:
             lam=self.config.template_mix,
             colour_gain=self.instance_colour_gain if self.config.copy_colour_gain else None,
             offset_rest_scale=self.config.offset_rest_scale,
+            shading=self.class_shading if self.config.world_shading else None,
         )
 
     @torch.no_grad()
@@ -71,6 +72,7 @@ class ReplacedScene:
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(self.instance_pose_delta.new_zeros(0, 6))
         self.instance_colour_gain = Parameter(self.instance_colour_gain.new_zeros(0, 3))
+        self.class_shading = Parameter(self.class_shading.new_zeros((0,) + tuple(self.class_shading.shape[1:])))
         self.stage = "replaced"
 
     def _finetune_densify(self, step: int) -> None:
