@@ -216,29 +216,6 @@ def test_a_copy_colour_gain_is_rendered_stored_and_exported(replaced, tmp_path):
         model.step = step
 
 
-def test_offsets_scaled_per_degree_are_exported_as_they_are_used(replaced, tmp_path):
-    from splatreplace_ns.template.export import instanced_arrays, load_instanced, save_instanced
-
-    _, _, trainer = replaced
-    model = trainer.pipeline.model
-    offsets = model.gauss_params["sh_offsets"]
-    saved = offsets.detach().clone()
-    try:
-        with torch.no_grad():
-            offsets.copy_(0.3 * torch.randn_like(offsets, generator=torch.Generator().manual_seed(0)))
-            unscaled = model.composed_scene().sh.clone()
-            model.config.offset_rest_scale = 0.05
-            scene = model.composed_scene()
-        assert not torch.allclose(scene.sh[:, 1:], unscaled[:, 1:], atol=1e-3)  # the scale reaches the render
-        save_instanced(tmp_path / "scaled.npz", instanced_arrays(model, colour_tolerance=0.0))
-        composed = load_instanced(tmp_path / "scaled.npz").compose()
-        assert torch.allclose(composed.sh, scene.sh, atol=2e-3)  # float16 offsets
-    finally:
-        model.config.offset_rest_scale = 1.0
-        with torch.no_grad():
-            offsets.copy_(saved)
-
-
 def test_world_shading_is_rendered_and_exported(replaced, tmp_path):
     from splatreplace_ns.template.export import instanced_arrays, load_instanced, save_instanced
 

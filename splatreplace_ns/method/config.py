@@ -18,7 +18,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from splatreplace_ns.method.cpu_allocator import keep_freed_buffers
 from splatreplace_ns.method.finite_steps import FiniteStepGradScaler
 from splatreplace_ns.method.pipeline import SplatReplacePipelineConfig
-from splatreplace_ns.method.schedules import StagedPositionSchedulerConfig, follow_stage_lengths
+from splatreplace_ns.method.schedules import follow_stage_lengths
 
 
 @dataclass
@@ -36,9 +36,7 @@ class SplatReplaceTrainer(Trainer):
     def __init__(self, config: SplatReplaceTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         if config.max_num_iterations <= 0:
             config.max_num_iterations = config.pipeline.total_iterations
-        stages = config.pipeline
-        follow_stage_lengths(config.optimizers, stages.base_iterations,
-                             stages.base_iterations + stages.contrastive_steps, stages.finetune_iterations)
+        follow_stage_lengths(config.optimizers, config.pipeline.base_iterations)
         if not torch.cuda.is_available() or config.machine.device_type == "cpu":
             keep_freed_buffers()  # CPU steps reuse their large gradient buffers instead of re-faulting them
         super().__init__(config, local_rank, world_size)
@@ -103,7 +101,7 @@ def splat_replace_trainer_config(
         optimizers={
             "means": {
                 "optimizer": FusedAdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
-                "scheduler": StagedPositionSchedulerConfig(lr_final=1.6e-6),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=base_iterations),
             },
             "features_dc": _adam(0.0025),
             "features_rest": _adam(0.0025 / 20),

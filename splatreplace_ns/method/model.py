@@ -75,10 +75,6 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Grid cells per template radius of the merge (larger: finer grid, more Gaussians kept)."""
     offset_l1_lambda: float = 0.01
     """Weight of the L1 penalty that keeps per-instance SH offsets small."""
-    offset_rest_scale: float = 1.0
-    """Factor on each copy's SH offsets of degree ≥ 1, which sets the rate at which a copy learns its own
-    view-dependent colour relative to its base colour (0.05: the shared colours' ratio; 0: view-dependent colour
-    shared by all copies)."""
     copy_colour_gain: bool = False
     """Fine-tune one gain per colour channel for each replaced copy, applied to its whole colour (not in the paper):
     a copy's shade or tint, learned where its training views see it, then also holds on the parts of it only

@@ -39,7 +39,6 @@ class ReplacedScene:
             table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
             lam=self.config.template_mix,
             colour_gain=self.instance_colour_gain if self.config.copy_colour_gain else None,
-            offset_rest_scale=self.config.offset_rest_scale,
             shading=self.class_shading if self.config.world_shading else None,
         )
 

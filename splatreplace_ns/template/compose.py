@@ -86,15 +86,6 @@ def apply_colour_gain(coeffs: Tensor, log_gain: Tensor) -> Tensor:
     return coeffs * gain.unsqueeze(-2) + dc_shift
 
 
-def offset_weights(num_coeffs: int, rest_scale: float, like: Tensor) -> Tensor:
-    """[K, 1] factor on stored SH offsets: 1 for the DC term, ``rest_scale`` for degree ≥ 1. Adam steps each stored
-    value by about its rate, so the factor sets the rate at which a copy learns its own view-dependent colour
-    relative to its base colour (0: copies share their view-dependent colour entirely)."""
-    weights = torch.full((num_coeffs, 1), float(rest_scale), dtype=like.dtype, device=like.device)
-    weights[0] = 1.0
-    return weights
-
-
 def compose_scene(
     means: Tensor,
     quats: Tensor,
@@ -112,7 +103,6 @@ def compose_scene(
     lam: float = 0.8,
     sh_degree: Optional[int] = None,
     colour_gain: Optional[Tensor] = None,
-    offset_rest_scale: float = 1.0,
     shading: Optional[Tensor] = None,
 ) -> ComposedScene:
     """Places every instance's copy of its class template into the world.
@@ -129,7 +119,6 @@ def compose_scene(
         sh_degree: degree used for the SH rotation (default: from K).
         colour_gain: [I, 3] natural log of each instance's colour gain per channel (:func:`apply_colour_gain`),
             or None (no gain).
-        offset_rest_scale: factor on the stored offsets of SH degree ≥ 1 (:func:`offset_weights`).
         shading: [C, 4, 3] each class's shading in world coordinates (``template.world_shading``), or None.
     Returns:
         :class:`ComposedScene` with M = N_background + Σ_i N_{class(i)} Gaussians.
@@ -163,8 +152,6 @@ def compose_scene(
     means_inst = torch.einsum("mij,mj->mi", R_rows, means[inst_rows]) + t_rows
     quats_inst = quat_multiply(q_rows, zero_quats_to_identity(quats[inst_rows]))
     offsets = sh_offsets[inst_rows, torch.cat(slots)]  # [M_inst, K, 3]
-    if offset_rest_scale != 1.0 and K > 1:
-        offsets = offsets * offset_weights(K, offset_rest_scale, offsets)
     coeffs = mix_sh(sh[inst_rows], offsets, lam)
     log_gain = None if colour_gain is None else colour_gain.to(coeffs)[row_instance]
     if shading is not None and len(shading):  # light that stays with the world while the copy turns

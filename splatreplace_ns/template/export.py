@@ -27,7 +27,7 @@ from typing import Dict, List
 import numpy as np
 import torch
 
-from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses, offset_weights
+from splatreplace_ns.template.compose import ComposedScene, compose_scene, instance_poses
 
 FORMAT = "splatreplace-instanced-v2"
 READABLE_FORMATS = ("splatreplace-instanced-v1", FORMAT)  # v1: dense float16 offsets
@@ -139,9 +139,7 @@ def instanced_arrays(model, colour_tolerance: float = DEFAULT_COLOUR_TOLERANCE) 
     table = model.instance_table
     q, _, t = instance_poses(table.q0.to(model.means), table.t0.to(model.means), model.instance_pose_delta.detach())
     gauss_class = model.gauss_params["template_class"][:, 0].round().long()
-    offsets = model.gauss_params["sh_offsets"].detach()
-    if model.config.offset_rest_scale != 1.0 and offsets.shape[2] > 1:  # stored as they are used
-        offsets = offsets * offset_weights(offsets.shape[2], model.config.offset_rest_scale, offsets)
+    offsets = model.gauss_params["sh_offsets"]
     out = {
         "format": np.array(FORMAT),
         "means": model.means, "quats": model.quats, "scales": model.scales, "opacities": model.opacities,

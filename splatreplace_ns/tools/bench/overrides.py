@@ -48,7 +48,7 @@ def parse_like(text: str, current: Any, path: str) -> Any:
 def apply_overrides(config: Any, overrides: Sequence[str]) -> Any:
     """Sets each ``PATH=VALUE`` of ``overrides`` on ``config`` (a dataclass; ``PATH`` is dotted, e.g.
     ``pipeline.registration.upright``, and goes through dicts by key, e.g.
-    ``optimizers.means.scheduler.finetune_lr``) in place, and returns ``config``.
+    ``optimizers.features_rest.optimizer.lr``) in place, and returns ``config``.
 
     Raises:
         ValueError: for an item without ``=``, a path that names no field (the message lists the fields of the
