@@ -4,8 +4,8 @@ In: a dataset with ground truth (true z-depth, instance masks, object poses and 
 ``tools/sim``), read from its ``transforms.json`` (:func:`read_coverage_inputs`), and the names of its training
 and test views. Out: :class:`Coverage`, one label map per test view (0 none, 1 own, 2 shared, 3 unseen) with the
 pixel counts per instance, by visibility and (``Coverage.sharp``) by being seen well; or None and the reason it is
-unavailable. :func:`cached_coverage` computes it once per dataset, split and footprint ratio in a process. The
-PSNR per class and what ``ns-eval`` and the bench report of it are in :mod:`splatreplace_ns.eval.coverage_scores`.
+unavailable, computed once per dataset, split and footprint ratio in a process (:func:`cached_coverage`). The
+PSNR per class: :mod:`splatreplace_ns.eval.coverage_scores`.
 
 The shared template's promise (paper §4.3) is that a part of an object the capture saw on one copy can be
 rendered on every copy. Each instance pixel ``p`` of copy ``i`` in a test view is classed:
@@ -26,12 +26,8 @@ footprint there (:func:`footprint`: the size on the surface of one pixel) at mos
 view's footprint at the same point. The surface normal the footprints need comes from the test view's true depth
 (:func:`surface_normals`) and is mapped to copy ``j`` like the point (``R_j R_i^T n``). The classes, in
 ``Coverage.sharp``: **own** (seen well on its own copy), **shared** (seen well only on another copy; possibly seen
-badly on its own), **unseen** (seen well on none; possibly seen badly). ``ns-eval`` reports them as
-``psnr_own_sharp``, ``psnr_shared_sharp`` and ``psnr_unseen_sharp``.
-
-The diagnostic needs true depth, ground-truth masks and poses; without them it is unavailable (None and the
-reason), never estimated. A class's canonical frame is taken as given: a symmetric class's points are not
-matched to their mirror images.
+badly on its own), **unseen** (seen well on none; possibly seen badly): ``ns-eval``'s ``psnr_*_sharp``. Never
+estimated without the ground truth; a class's canonical frame is taken as given (no symmetric matching).
 """
 
 from __future__ import annotations
