@@ -284,19 +284,24 @@ def test_a_variant_reads_the_baseline_classes_from_the_defaults_result(tmp_path)
     assert "coverage" not in defaults_baseline(data, cfg)[1]
 
 
+def _suite_rows(coverage):
+    """Two bench-suite rows with equal figures: seed 0 with ``coverage``, seed 1 without any."""
+    figures = {"psnr": 20.0, "psnr_masked": 18.0, "ssim": 0.8, "ssim_masked": 0.7}
+    return [{"seed": seed, "scene": {"groups": [{"count": 2, "cls": "box"}]}, "baseline": figures, "ours": figures,
+             "gain_masked": 0.0, "gain_full": 0.0, "per_instance": {}, "segmentation_miou": None,
+             "registration": {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": [],
+                              "wrong": []},
+             "time_s": dict.fromkeys(("base", "contrastive", "segmentation", "registration", "finetune"), 1.0),
+             "coverage": cov}
+            for seed, cov in ((0, coverage), (1, None))]
+
+
 def test_the_suite_table_shows_the_gain_on_shared_pixels(capsys):
     from splatreplace_ns.tools.bench.suite import summarise
     from splatreplace_ns.tools.bench.suite_output import print_suite
 
     ours = {"own": 30.0, "shared": 25.0, "unseen": None, "pixels": {"own": 300, "shared": 100, "unseen": 0}}
-    figures = {"psnr": 20.0, "psnr_masked": 18.0, "ssim": 0.8, "ssim_masked": 0.7}
-    rows = [{"seed": seed, "scene": {"groups": [{"count": 2, "cls": "box"}]}, "baseline": figures, "ours": figures,
-             "gain_masked": 0.0, "gain_full": 0.0, "per_instance": {}, "segmentation_miou": None,
-             "registration": {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": [],
-                              "wrong": []},
-             "time_s": dict.fromkeys(("base", "contrastive", "segmentation", "registration", "finetune"), 1.0),
-             "coverage": coverage}
-            for seed, coverage in ((0, compare_coverage({**ours, "shared": 24.5}, ours)), (1, None))]
+    rows = _suite_rows(compare_coverage({**ours, "shared": 24.5}, ours))
     result = {"split": "dev", "parameters": {"res": "8x8", "base_iterations": 1, "contrastive_iterations": 1,
                                              "finetune_iterations": 1, "baseline_iterations": 3},
               "scenes": rows, "summary": summarise(rows), "time_s": 60.0}
@@ -489,14 +494,7 @@ def test_the_suite_carries_the_sharp_classes_beside_the_visible_ones(capsys):
                                           "sharp": {"own": 31.0, "shared": 24.5, "unseen": None}}
     assert "sharp" not in scores.baseline_coverage(old)
 
-    figures = {"psnr": 20.0, "psnr_masked": 18.0, "ssim": 0.8, "ssim_masked": 0.7}
-    rows = [{"seed": seed, "scene": {"groups": [{"count": 2, "cls": "box"}]}, "baseline": figures, "ours": figures,
-             "gain_masked": 0.0, "gain_full": 0.0, "per_instance": {}, "segmentation_miou": None,
-             "registration": {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": [],
-                              "wrong": []},
-             "time_s": dict.fromkeys(("base", "contrastive", "segmentation", "registration", "finetune"), 1.0),
-             "coverage": coverage}
-            for seed, coverage in ((0, row), (1, None))]
+    rows = _suite_rows(row)
     summary = summarise(rows)
     assert summary["coverage_sharp_gain_mean"] == {"own": pytest.approx(0.0), "shared": pytest.approx(1.5),
                                                    "unseen": None}
