@@ -187,9 +187,13 @@ def test_skip_bad_clicks_makes_the_other_masks_and_keeps_their_ids(base_run, tmp
         assert not (ours == 1).any()
         for k in (2, 3):
             assert ((ours == k) == (full == k)).mean() > 0.99
-    # a second click on one instance is not a click that makes no instance: it still stops the command
-    path.write_text(json.dumps([clicks[0], dict(clicks[0])]))
-    with pytest.raises(ClickError, match="same object"):
+    # two clicks on one spot: the model holds them as one object, so neither makes an instance; the others do
+    path.write_text(json.dumps([clicks[0], dict(clicks[0])] + clicks[1:]))
+    skipped = make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
+    assert len(skipped["skipped_clicks"]) == 1 and "same object" in skipped["skipped_clicks"][0]
+    assert read_dataset_meta(data)["instances"] == [{"id": k, "class": "crate"} for k in (3, 4)]
+    path.write_text(json.dumps([clicks[0], dict(clicks[0])]))  # and when no click is left, the command stops
+    with pytest.raises(ClickError, match="no click makes an instance:\n.*same object"):
         make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
 
 

@@ -11,6 +11,11 @@ the masks hold and which clicks made them::
 :func:`with_click_masks` gives the ``transforms.json`` contents as if the masks were in it, so every reader of the
 dataset (the dataparser, the stale-clicks check, the benchmarks) sees one view of it. Masks given in
 ``transforms.json`` itself (ground truth, or a person's) always win over the index.
+
+**Evaluation masks.** Masks given on exactly the evaluation frames (every frame that ``train_filenames`` does not
+list, and no other) score the test views and nothing else: the training frames get their masks from the clicks.
+:func:`with_click_masks` moves them to ``frames[].evaluation_mask_path`` (and the listed ``instances`` to
+``evaluation_instances``), so that no reader takes them for training masks.
 """
 
 from __future__ import annotations
@@ -26,6 +31,10 @@ INDEX_NAME = "index.json"
 MASKS_SOURCE_KEY = "instance_masks_source"
 """Where the instance masks come from: ``"clicks"`` (made from one click per instance and the base model) or
 ``"ground_truth"`` (the default when absent: a synthetic scene's, or a person's)."""
+EVALUATION_MASK_KEY = "evaluation_mask_path"
+"""A frame's evaluation mask (given on the evaluation frames alone; see the module's docstring)."""
+EVALUATION_INSTANCES_KEY = "evaluation_instances"
+"""The ``instances`` that ``transforms.json`` lists beside evaluation masks: the ids those masks hold."""
 CLICKS_DIGEST_KEY = "instance_masks_clicks"
 """The fingerprint (``datamanager.clicks.clicks_digest``) of the clicks the masks were made from."""
 
@@ -74,14 +83,45 @@ def has_given_masks(meta: Dict) -> bool:
     return listed and meta.get(MASKS_SOURCE_KEY, "ground_truth") != "clicks"
 
 
+def evaluation_frames(meta: Dict) -> Optional[set]:
+    """The ``file_path`` of every frame that ``train_filenames`` does not list; None without split lists."""
+    train = meta.get("train_filenames")
+    if not isinstance(train, list):
+        return None
+    return {f.get("file_path") for f in meta.get("frames", []) if isinstance(f, dict)} - set(train)
+
+
+def masks_on_evaluation_frames_only(meta: Dict) -> bool:
+    """Whether ``transforms.json`` gives instance masks on exactly its evaluation frames (and on no training
+    frame): evaluation masks."""
+    having = {f.get("file_path") for f in meta.get("frames", []) if isinstance(f, dict) and "instance_mask_path" in f}
+    evaluation = evaluation_frames(meta)
+    return bool(having) and evaluation is not None and having == evaluation
+
+
+def split_evaluation_masks(meta: Dict) -> Dict:
+    """``meta`` itself, or, when its masks are evaluation masks, a copy with them moved to
+    ``frames[].evaluation_mask_path`` and its ``instances`` to ``evaluation_instances``."""
+    if not masks_on_evaluation_frames_only(meta):
+        return meta
+    out = json.loads(json.dumps(meta))
+    for frame in out["frames"]:
+        if "instance_mask_path" in frame:
+            frame[EVALUATION_MASK_KEY] = frame.pop("instance_mask_path")
+    out[EVALUATION_INSTANCES_KEY] = out.pop("instances", [])
+    return out
+
+
 def with_click_masks(meta: Dict, data_dir: Path) -> Dict:
-    """``transforms.json``'s contents with the masks of ``instance_masks/index.json`` in it.
+    """``transforms.json``'s contents with the masks of ``instance_masks/index.json`` in it (evaluation masks moved
+    aside first, :func:`split_evaluation_masks`).
 
     Returns ``meta`` itself when there is no index, when ``transforms.json`` gives masks of its own, or when the
     index does not cover every frame (``transforms.json`` changed since: the masks are then made again). Otherwise a
     copy with ``frames[i].instance_mask_path``, ``instances``, ``instance_masks_source: "clicks"`` and the clicks'
     digest set from the index.
     """
+    meta = split_evaluation_masks(meta)
     index = read_index(data_dir)
     if index is None or has_given_masks(meta):
         return meta

@@ -152,9 +152,7 @@ class SplatReplaceDataManager(FullImageDatamanager[SplatReplaceDataset]):
         meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
         for split, dataset in (("train", self.train_dataset), ("eval", self.eval_dataset)):
             outputs = dataset._dataparser_outputs
-            filenames = SplatReplaceDataParser._instance_mask_filenames(meta, transforms.parent, outputs.image_filenames)
-            instances = SplatReplaceDataParser._instances(meta, outputs, transforms.parent)
-            source = SplatReplaceDataParser._instance_masks_source(meta)
+            filenames, instances, source = SplatReplaceDataParser.split_masks(meta, transforms.parent, outputs)
             outputs.metadata.update(instance_mask_filenames=filenames, instances=instances, instance_masks_source=source)
             dataset.use_instance_masks(filenames, instances, source)
             cached = self.__dict__.get("cached_train" if split == "train" else "cached_eval")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Type
+from typing import Dict, List, Optional, Tuple, Type
 from unittest.mock import patch
 
 import numpy as np
@@ -23,7 +23,12 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from splatreplace_ns.datamanager.click_masks import MASKS_SOURCE_KEY, with_click_masks
+from splatreplace_ns.datamanager.click_masks import (
+    EVALUATION_INSTANCES_KEY,
+    EVALUATION_MASK_KEY,
+    MASKS_SOURCE_KEY,
+    with_click_masks,
+)
 from splatreplace_ns.datamanager.errors import DatasetFormatError
 from splatreplace_ns.datamanager.validate import SPLIT_LISTS, check_dataset, with_both_eval_splits
 
@@ -136,11 +141,8 @@ class SplatReplaceDataParser(Nerfstudio):
             outputs = super()._generate_dataparser_outputs(split)
         data_dir = transforms_path.parent
 
-        outputs.metadata["instance_mask_filenames"] = self._instance_mask_filenames(
-            meta, data_dir, outputs.image_filenames
-        )
-        outputs.metadata["instances"] = self._instances(meta, outputs, data_dir)
-        outputs.metadata["instance_masks_source"] = self._instance_masks_source(meta)
+        filenames, instances, source = self.split_masks(meta, data_dir, outputs)
+        outputs.metadata.update(instance_mask_filenames=filenames, instances=instances, instance_masks_source=source)
         outputs.metadata["depth_zero_is_far"] = self._depth_zero_is_far(meta)
         return outputs
 
@@ -152,6 +154,24 @@ class SplatReplaceDataParser(Nerfstudio):
             cached = (transforms_path, check_dataset(transforms_path, transforms_path.parent / "clicks.json"))
             self._checked = cached
         return cached[1]
+
+    @classmethod
+    def split_masks(cls, meta: Dict, data_dir: Path, outputs: DataparserOutputs) -> Tuple[Optional[List[Path]], List[Dict], str]:
+        """A split's instance masks, the instances they hold and where they come from, from ``meta`` as
+        :func:`with_click_masks` gives it: the evaluation masks for a split of evaluation frames when the dataset
+        gives them (:mod:`splatreplace_ns.datamanager.click_masks`), else the frames' ``instance_mask_path``.
+
+        Returns:
+            (mask file per image or None, the instances, ``"ground_truth"`` or ``"clicks"``).
+        """
+        by_name = {Path(f["file_path"]).name: data_dir / f[EVALUATION_MASK_KEY]
+                   for f in meta.get("frames", []) if EVALUATION_MASK_KEY in f}
+        names = [Path(p).name for p in outputs.image_filenames]
+        if by_name and names and all(name in by_name for name in names):
+            given = dict(meta, instances=meta.get(EVALUATION_INSTANCES_KEY, []))
+            return [by_name[name] for name in names], cls._instances(given, outputs, data_dir), "ground_truth"
+        return (cls._instance_mask_filenames(meta, data_dir, outputs.image_filenames),
+                cls._instances(meta, outputs, data_dir), cls._instance_masks_source(meta))
 
     @staticmethod
     def _instance_masks_source(meta: Dict) -> str:

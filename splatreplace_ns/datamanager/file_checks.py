@@ -72,9 +72,10 @@ def decoded(path: Path, what: str) -> Tuple[Optional[np.ndarray], Optional[str]]
         return None, f"{path}: not a readable {what} ({err})"
 
 
-def _instance_ids(meta: Dict) -> Optional[set]:
-    """The ids ``instances`` lists, or None when it lists none (or is not a list of objects with integer ids)."""
-    instances = meta.get("instances")
+def _instance_ids(meta: Dict, key: str = "instances") -> Optional[set]:
+    """The ids ``instances`` (or ``key``) lists, or None when it lists none (or is not a list of objects with
+    integer ids)."""
+    instances = meta.get(key)
     if not isinstance(instances, list) or not instances:
         return None
     ids = [inst.get("id") if isinstance(inst, dict) else None for inst in instances]
@@ -101,7 +102,7 @@ def frame_file_problems(meta: Dict, data_dir: Path) -> Tuple[Dict[str, Optional[
     """
     problems: List[str] = []
     sizes: Dict[str, Optional[Tuple[int, int]]] = {}
-    ids = _instance_ids(meta)
+    ids = {"instance_mask_path": _instance_ids(meta), "evaluation_mask_path": _instance_ids(meta, "evaluation_instances")}
     unlisted: Dict[Path, List[int]] = {}  # instance mask -> the ids it holds that 'instances' does not list
     frames = meta.get("frames") if isinstance(meta.get("frames"), list) else []
     for i, frame in enumerate(frames):
@@ -119,7 +120,7 @@ def frame_file_problems(meta: Dict, data_dir: Path) -> Tuple[Dict[str, Optional[
             problems.append(f"{image_path}: size {size[0]}x{size[1]}, but transforms.json gives w x h = "
                             f"{expected[0]}x{expected[1]} for frames[{i}]")
         for key, what in (("mask_path", "mask"), ("depth_file_path", "depth map"),
-                          ("instance_mask_path", "instance mask")):
+                          ("instance_mask_path", "instance mask"), ("evaluation_mask_path", "instance mask")):
             if not isinstance(frame.get(key), str) or not frame[key]:
                 continue
             path = data_dir / frame[key]
@@ -127,15 +128,16 @@ def frame_file_problems(meta: Dict, data_dir: Path) -> Tuple[Dict[str, Optional[
             problem = problem or _aux_problem(path, aux, what, size)
             if problem:
                 problems.append(problem)
-            elif key == "instance_mask_path" and ids is not None:
-                unknown = sorted(set(np.unique(aux).tolist()) - {0} - ids)
+            elif ids.get(key) is not None:
+                unknown = sorted(set(np.unique(aux).tolist()) - {0} - ids[key])
                 if unknown:
                     unlisted[path] = unknown
     if unlisted:
         first = next(iter(unlisted))
         every = sorted({i for found in unlisted.values() for i in found})
+        listed = sorted(set().union(*(v for v in ids.values() if v)))
         problems.append(f"{first}: ids {every[:10]} are not listed in transforms.json 'instances' (listed: "
-                        f"{sorted(ids)}); {len(unlisted)} instance mask(s) hold them")
+                        f"{listed}); {len(unlisted)} instance mask(s) hold them")
     return sizes, problems
 
 

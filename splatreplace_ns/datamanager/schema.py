@@ -161,12 +161,18 @@ def cross_field_problems(raw: Dict) -> List[str]:
     if repeated:
         problems.append(f"frames: image file names {repeated[:3]} appear more than once (masks and depth pair "
                         "with images by file name)")
+    train = set(raw["train_filenames"]) if isinstance(raw.get("train_filenames"), list) else None
     for key in ("mask_path", "depth_file_path", "instance_mask_path"):
         having = [i for i, f in enumerate(frames) if key in f]
+        evaluation_only = train is not None and {i for i, f in enumerate(frames) if f.get("file_path") not in train}
+        if key == "instance_mask_path" and having and set(having) == evaluation_only:
+            continue  # evaluation masks: they score the test views; the training frames' come from the clicks
         if having and len(having) != len(frames):
             without = [i for i in range(len(frames)) if i not in set(having)]
             problems.append(f"'{key}' is given in {len(having)} of {len(frames)} frames (not in frames "
-                            f"{_first(without)}); give it for every frame or for none")
+                            f"{_first(without)}); give it for every frame or for none"
+                            + (" (or, for instance masks, on exactly the frames train_filenames does not list)"
+                               if key == "instance_mask_path" else ""))
     given = [key for key in SPLIT_LISTS if key in raw]
     if given and ("train_filenames" not in given or given == ["train_filenames"]):
         problems.append(f"split lists {given}: give 'train_filenames' and 'test_filenames' (or 'val_filenames'), "

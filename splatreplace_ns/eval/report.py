@@ -246,8 +246,11 @@ def registration_report(
     registration = getattr(pipeline.model, "registration", None)
     if not registration:
         return None, "the model carries no registration"
-    instances = pipeline.datamanager.train_dataparser_outputs.metadata.get("instances") or []
-    posed = {int(i["id"]): i for i in instances if "transform_matrix" in i}
+    posed = {}
+    # the training split's instances; with evaluation masks alone the ground truth's are the evaluation split's
+    for dataset in (pipeline.datamanager.train_dataset, pipeline.datamanager.eval_dataset):
+        instances = dataset._dataparser_outputs.metadata.get("instances") or []
+        posed = posed or {int(i["id"]): i for i in instances if "transform_matrix" in i}
     if not posed:
         return None, "the dataset gives no ground-truth object poses (instances[].transform_matrix)"
     model_to_gt, note = instance_gt_ids(pipeline)

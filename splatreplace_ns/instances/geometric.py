@@ -19,7 +19,7 @@ import numpy as np
 from splatreplace_ns.instances.geometric_config import Clustering, ClusteringConfig, NOISE, PLANE
 from splatreplace_ns.instances.planes import cut_off_the_floor, floor_plane, remove_planes
 from splatreplace_ns.instances.point_cloud import dbscan_labels, nearby_points, neighbourhood_spacing
-from splatreplace_ns.instances.projection import ClickError, LiftedClick
+from splatreplace_ns.instances.projection import ClickError, DuplicateClicksError, LiftedClick
 from splatreplace_ns.instances.random_walk import (
     Walk,
     colour_bin,
@@ -355,7 +355,7 @@ def check_distinct_clicks(clicks: Sequence[LiftedClick], points: np.ndarray, spa
     np.fill_diagonal(gaps, np.inf)
     a, b = np.unravel_index(np.argmin(gaps), gaps.shape)
     if gaps[a, b] <= cfg.duplicate_radius * spacing:
-        raise ClickError(
+        raise DuplicateClicksError(
             f"{clicks[b].source}: falls on the same object as {clicks[a].source} "
-            "(same cluster, a few Gaussians apart); one click per instance"
+            "(same cluster, a few Gaussians apart); one click per instance", (clicks[a].source, clicks[b].source)
         )

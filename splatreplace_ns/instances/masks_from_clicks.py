@@ -33,6 +33,7 @@ from splatreplace_ns.instances.masks2d import (
 from splatreplace_ns.instances.onnx_sam import OnnxSam, sam_labels
 from splatreplace_ns.instances.projection import (
     ClickError,
+    DuplicateClicksError,
     LiftedClick,
     frames_holding,
     lift_click,
@@ -254,7 +255,20 @@ def masks_from_model(
             raise ClickError("no click makes an instance:\n" + "\n".join(skipped))
     else:
         positions, lifted, skipped = list(range(len(clicks))), lift_clicks(model, frames, clicks, cfg.min_alpha, renders), []
-    instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
+    while True:
+        try:
+            instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
+            break
+        except DuplicateClicksError as err:
+            drop = {k for k, click in enumerate(lifted) if click.source in err.sources}
+            if not cfg.skip_bad_clicks or not drop:
+                raise
+            # the base model holds both as one object: neither instance is made (so neither is replaced)
+            skipped.append(f"{err}: both left out")
+            positions = [p for k, p in enumerate(positions) if k not in drop]
+            lifted = [click for k, click in enumerate(lifted) if k not in drop]
+            if not positions:
+                raise ClickError("no click makes an instance:\n" + "\n".join(skipped)) from None
     # instance k of the kept clicks carries its click's id (position + 1), whatever was skipped before it
     click_id = np.array([0] + [p + 1 for p in positions], dtype=np.uint16)
     masks = []

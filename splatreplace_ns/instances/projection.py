@@ -22,6 +22,14 @@ class ClickError(ValueError):
     """A click that cannot become an instance; the message names the click."""
 
 
+class DuplicateClicksError(ClickError):
+    """Two clicks on one spot of one object; ``sources`` names both."""
+
+    def __init__(self, message: str, sources: Tuple[str, str]) -> None:
+        super().__init__(message)
+        self.sources = sources
+
+
 @dataclass(frozen=True)
 class LiftedClick:
     index: int

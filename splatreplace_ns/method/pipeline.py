@@ -25,6 +25,7 @@ from splatreplace_ns.datamanager.clicks import pixel_index
 from splatreplace_ns.datamanager.datamanager import SplatReplaceDataManagerConfig
 from splatreplace_ns.features.contrastive import ContrastiveLossConfig, contrastive_loss
 from splatreplace_ns.instances.from_clicks import InstanceSelection
+from splatreplace_ns.instances.projection import ClickError
 from splatreplace_ns.instances.lift import Votes
 from splatreplace_ns.instances.masks_from_clicks import ClickMasksConfig
 from splatreplace_ns.method.finetune_stage import FinetuneStage
@@ -97,6 +98,7 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
         self.votes_time_s = 0.0
         self._in_training_callback = False
         self._masks_stale = False
+        self._unsegmented = False  # no click made an instance: no contrastive stage, the scene trains as the base
         if self.test_mode == "val" and self.config.contrastive_iterations > 0:
             self._check_clicks_before_training()
             self._masks_stale = self._masks_made_from_other_clicks()
@@ -114,7 +116,7 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
     def stage_at(self, step: int) -> str:
         if step < self.config.base_iterations:
             return "base"
-        if step < self.config.base_iterations + self.config.contrastive_steps:
+        if step < self.config.base_iterations + self.config.contrastive_steps and not self._unsegmented:
             return "contrastive"
         return "finetune" if self.model.has_templates else "segmented"
 
@@ -170,8 +172,14 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
                 if self._mask_clicks_from_viewer and not self.clicks_path().exists():
                     self.make_instance_masks(**self.mask_clicks_from_viewer())
                 else:
-                    self.make_instance_masks()
-            if step == self.config.base_iterations + self.config.contrastive_steps - 1:
+                    try:
+                        self.make_instance_masks()
+                    except ClickError as err:  # the run goes on without instances rather than ending here
+                        self.masks_report = {"error": str(err)}
+                        CONSOLE.log(f"[bold red]masks: {err}")
+                        self.leave_unsegmented(f"no click of {self.clicks_path()} made an instance on the base model")
+                        self._unsegmented = True
+            if step == self.config.base_iterations + self.config.contrastive_steps - 1 and not self._unsegmented:
                 self.run_segmentation()
             start = self.model.finetune_start
             if (self.config.revert.enabled and self.model.has_templates and start is not None

@@ -244,22 +244,26 @@ class SegmentationStage:
         self.model.train()
         return report
 
+    def leave_unsegmented(self, reason: str) -> Dict:
+        """No instance: nothing is replaced, and the scene trains on as the base model. → the segmentation report."""
+        model = self.model
+        model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
+        model.instances = []
+        model.stage = "segmented"
+        model.carve_owner = None
+        self.segmentation_report = {"instances": [], "mask_coverage": {}, "carved": 0, "carve_deferred": 0,
+                                    "gaussians": model.num_points, "instance_gaussians": 0, "unsegmented": reason}
+        CONSOLE.log(f"[bold yellow]segmentation: {reason}, so nothing is replaced: the scene is left as it was and "
+                    "trained on as the base model")
+        return self.segmentation_report
+
     @torch.no_grad()
     def finish_segmentation(self) -> Dict:
         assert self.selection is not None
         cfg = self.config.segmentation
         model = self.model
         if not self.selection.instances:  # every click was refused: nothing to replace, the scene stays as it is
-            model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
-            model.instances = []
-            model.stage = "segmented"
-            model.carve_owner = None
-            self.segmentation_report = {"instances": [], "mask_coverage": {}, "carved": 0, "carve_deferred": 0,
-                                        "gaussians": model.num_points,
-                                        "instance_gaussians": 0}
-            CONSOLE.log("[bold yellow]segmentation: no instance was selected, so nothing is replaced: the scene is "
-                        "left as it was and trained on as the base model")
-            return self.segmentation_report
+            return self.leave_unsegmented("no instance was selected")
         queries = self.selection.queries.to(self.device)
         labels = self.selection.labels().to(self.device)
 

@@ -35,6 +35,17 @@ def instance_table(baseline: Optional[Dict[str, float]], ours: Optional[Dict[str
     return table
 
 
+def comparable_masks(baseline: Dict, ours: Dict) -> Optional[str]:
+    """None when both methods' masked figures are over the test views' ground-truth instance masks; else why
+    no masked figure is shown for either (masks made from ours' own clicks would score pixels the baseline's do
+    not, and score ours against its own segmentation)."""
+    if baseline.get("instance_masks") == ours.get("instance_masks") == "ground truth":
+        return None
+    return ("no masked figures: the test views have no ground-truth instance masks (give them on the test frames "
+            "alone, instance_mask_path on exactly the frames train_filenames does not list, to score both methods "
+            "on the same pixels)")
+
+
 @dataclass
 class DemoCommand:
     """Run splat-replace and the 3DGS* baseline on the embedded default scene and print the metric table."""
@@ -56,7 +67,8 @@ class DemoCommand:
     finetune_iterations: int = 1000
     """Shared-template fine-tuning iterations (the baseline trains base + contrastive + finetune iterations)."""
     data: Optional[Path] = None
-    """Use this dataset (with clicks.json and instance masks) instead of generating one."""
+    """Use this dataset (with clicks.json) instead of generating one. Masked figures need ground-truth instance
+    masks on its test frames (on every frame, or on the test frames alone as evaluation masks)."""
     json: Optional[Path] = None
     """Also write every printed figure to this JSON file."""
     sequential: bool = False
@@ -91,6 +103,10 @@ class DemoCommand:
         side_by_side({"baseline": pair["baseline_pipeline"], "ours": pair["ours_trainer"].pipeline},
                      list(range(min(n_test, 4))), figure)
 
+        masked_note = comparable_masks(pair["baseline"], pair["ours"])
+        if masked_note:  # neither method's masked figure is shown: they would not score the same pixels
+            for name in ("baseline", "ours"):
+                pair[name] = {**pair[name], "psnr_masked": None, "ssim_masked": None, "psnr_per_instance": None}
         table = Table(title="splat-replace demo: test views (same total iterations)")
         for col in ("method", "PSNR", "PSNR masked", "SSIM", "SSIM masked"):
             table.add_column(col)
@@ -103,6 +119,8 @@ class DemoCommand:
         per_instance = instance_table(pair["baseline"].get("psnr_per_instance"), pair["ours"].get("psnr_per_instance"))
         if per_instance is not None:
             CONSOLE.print(per_instance)
+        CONSOLE.print(masked_note or "masked figures: over the test views' ground-truth instance masks (the same "
+                      "pixels for both methods)")
         CONSOLE.print("LPIPS and KID: reported by ns-eval when their weights are on disk (never computed with random weights)")
         total_s = time.perf_counter() - start
         config = pair["ours_config"].get_base_dir() / "config.yml"
@@ -117,6 +135,7 @@ class DemoCommand:
             "baseline": pair["baseline"],
             "ours": pair["ours"],
             "registration": pair["registration"],
+            "masked_figures": masked_note or "over the test views' ground-truth instance masks",
             "sizes": sizes,
             "figure": str(figure),
             "time_s": {"sim": sim_s, **pair["times"], "total": total_s},

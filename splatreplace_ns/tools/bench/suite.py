@@ -30,6 +30,7 @@ import torch
 
 from splatreplace_ns.tools.bench.output import publish, write_result_json
 from splatreplace_ns.tools.bench.suite_output import WRONG_POSE_DEG, print_suite, write_gain_plot
+from splatreplace_ns.tools.bench.user_inputs import inputs_report, make_regime_folder, scene_of
 from splatreplace_ns.tools.demo import DemoCommand
 
 DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
@@ -94,6 +95,11 @@ class BenchSuiteConfig:
     gt_poses registers every instance with the pose its transforms.json implies; gt_instances also labels the
     Gaussians from its masks. What fine-tuning reaches when the stages before it are exact: the ceiling of the
     representation at this budget, and the share of the gap each stage leaves."""
+    inputs: Literal["exact", "user", "user+masks", "user+depth", "user+points"] = "exact"
+    """What both methods are given (``splatreplace_ns.tools.bench.user_inputs``). exact: the images, camera poses and
+    clicks, plus the true instance masks and depth of every frame and a point cloud from the true depth. user: what a
+    user has: images, camera poses and clicks.json, COLMAP's sparse points; the true masks of the test views only
+    score. user+masks / user+depth / user+points: the user's regime with that one exact input given back."""
     training_seed: Optional[int] = None
     """Training seed of ours and the baseline: nerfstudio's machine.seed and the order the training views are drawn
     in (default: nerfstudio's 42). The same scenes trained again with another seed give the suite's run-to-run
@@ -136,7 +142,8 @@ def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> 
     label = "" if default else variant_label(cfg)
     safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
     seed = "" if cfg.training_seed is None else f"_seed{cfg.training_seed}"
-    return cfg.out_dir / (f"{data_name}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
+    inputs = "" if cfg.inputs == "exact" else f"_{cfg.inputs.replace('+', '-')}"
+    return cfg.out_dir / (f"{data_name}{inputs}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
 
 
 def configure_ours(cfg: BenchSuiteConfig):
@@ -236,9 +243,10 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
 
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     start = time.perf_counter()
-    data = cached_random_scene(seed, res, cfg.n_train, cfg.n_test, cfg.data_root)
+    scene = cached_random_scene(seed, res, cfg.n_train, cfg.n_test, cfg.data_root)
+    data = make_regime_folder(scene, cfg.inputs)  # what both methods are given
     sim_s = time.perf_counter() - start
-    meta = json.loads((data / "transforms.json").read_text())
+    meta = json.loads((scene / "transforms.json").read_text())
     segmentation: Dict = {}
 
     def score_segmentation(trainer) -> None:  # the selected instances' masks in the test views, before replacement
@@ -252,7 +260,8 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     elif cfg.reuse_baseline:
         pair = train_variant_reusing_baseline(data, cfg, clock)
     else:
-        pair = train_ours_and_baseline(data, run_folder(cfg, data.name), B, C, F, resumable=True,
+        forget_click_masks(data)
+        pair = train_ours_and_baseline(data, run_folder(cfg, scene.name), B, C, F, resumable=True,
                                        parallel=not cfg.sequential, after_step=clock, configure=configure_ours(cfg),
                                        seed=cfg.training_seed)
     pipeline = pair["ours_trainer"].pipeline
@@ -271,6 +280,8 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         "scene": meta["sim"]["scene"],
         "effects": [k for k, v in meta["sim"]["effects"].items() if v],
         "instances": len(meta["instances"]),
+        "inputs": cfg.inputs,
+        **({"sparse_points": inputs_report(data).get("sparse_points")} if cfg.inputs != "exact" else {}),
         "baseline": {k: baseline.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
         "ours": {k: ours.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
         "gain_masked": _diff(ours.get("psnr_masked"), baseline.get("psnr_masked")),
@@ -293,6 +304,17 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     return row
 
 
+def forget_click_masks(data: Path) -> None:
+    """Removes the masks an earlier run made from the clicks in a folder without masks of its own, so that ours
+    makes them again from its own base model (and the masks stage's time is counted)."""
+    from splatreplace_ns.datamanager.click_masks import MASKS_DIR
+
+    if (data / MASKS_DIR).is_dir() and not (data / MASKS_DIR).is_symlink():
+        import shutil
+
+        shutil.rmtree(data / MASKS_DIR)
+
+
 def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
     """Ours with the variant's settings, resumed from the defaults' run of this scene at the end of segmentation;
     the baseline's metrics and the segmentation's score are that run's (the same segmentation). → the fields of
@@ -308,14 +330,14 @@ def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
     if not variant_label(cfg):
         raise ValueError("--from-segmentation needs a variant (--registration or --overrides)")
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
-    default = run_folder(cfg, data.name, default=True)
+    default = run_folder(cfg, scene_of(data, cfg.inputs).name, default=True)
     checkpoints = default / "ours" / "splat-replace" / "run" / "nerfstudio_models"
     if not (checkpoints / f"step-{B + C - 1:09d}.ckpt").exists():
         raise FileNotFoundError(
             f"{default}: no run with the defaults that kept its checkpoint at the end of segmentation (step "
             f"{B + C - 1}); run `splatreplace bench suite` with the same split, scenes and budget first")
     previous, baseline = defaults_baseline(data, cfg)
-    config = make_trainer_config(data, run_folder(cfg, data.name), B, C, F, experiment_name="ours", progress=True,
+    config = make_trainer_config(data, run_folder(cfg, scene_of(data, cfg.inputs).name), B, C, F, experiment_name="ours", progress=True,
                                  resume_from=(checkpoints, B + C - 1))
     configure_ours(cfg)(config)
     before = None
@@ -348,7 +370,7 @@ def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
     """
     from splatreplace_ns.eval.coverage_scores import baseline_coverage
 
-    default = run_folder(cfg, data.name, default=True)
+    default = run_folder(cfg, scene_of(data, cfg.inputs).name, default=True)
     saved = default / "result.json"
     if not saved.exists():
         raise FileNotFoundError(f"{default}: no run with the defaults; run `splatreplace bench suite` with the same "
@@ -370,7 +392,7 @@ def train_variant_reusing_baseline(data: Path, cfg: BenchSuiteConfig, clock: "St
     if not variant_label(cfg):
         raise ValueError("--reuse-baseline needs a variant (--registration or --overrides)")
     previous, baseline = defaults_baseline(data, cfg)
-    config = make_trainer_config(data, run_folder(cfg, data.name), cfg.base_iterations, cfg.contrastive_iterations,
+    config = make_trainer_config(data, run_folder(cfg, scene_of(data, cfg.inputs).name), cfg.base_iterations, cfg.contrastive_iterations,
                                  cfg.finetune_iterations, experiment_name="ours", progress=True)
     configure_ours(cfg)(config)
     trainer, seconds = _run(config, after_step=clock)
@@ -429,6 +451,7 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
                      "finetune_iterations": cfg.finetune_iterations, "registration": cfg.registration,
                      "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation,
                      **({"reuse_baseline": True} if cfg.reuse_baseline else {}),
+                     **({"inputs": cfg.inputs} if cfg.inputs != "exact" else {}),
                      **({"training_seed": cfg.training_seed} if cfg.training_seed is not None else {})}
     if cfg.oracle is not None:
         configuration["oracle"] = cfg.oracle

@@ -32,7 +32,8 @@ def print_suite(result: Dict) -> None:
     table = Table(title=f"bench suite, {result['split']} split ({result['parameters']['res']}, "
                         f"ours {result['parameters']['base_iterations']}+{result['parameters']['contrastive_iterations']}"
                         f"+{result['parameters']['finetune_iterations']} vs 3DGS* "
-                        f"{result['parameters']['baseline_iterations']} iterations)")
+                        f"{result['parameters']['baseline_iterations']} iterations; inputs: "
+                        f"{result['parameters'].get('inputs', 'exact')})")
     columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "gain shared (px %)",
                "gain shared (sharp)", "masked SSIM", "mIoU", "rot. err. ° mean / max", "failed / wrong",
                "s: base / contr. / seg. / reg. / fine")

@@ -91,6 +91,7 @@ def test_metrics(pipeline) -> Dict[str, float]:
     figures = coverage_figures(metrics)  # PSNR over the test pixels seen on their own copy, only on another, or never
     if figures:
         out["coverage"] = figures
+    out["instance_masks"] = metrics.get("instance_masks")  # "ground truth", "made from the clicks ...", or None
     if "per_view" in metrics:
         out["per_view"] = [{k: row.get(k) for k in ("view", "image") + METRICS} for row in metrics["per_view"]]
     return out
