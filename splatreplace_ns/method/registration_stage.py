@@ -22,6 +22,28 @@ from splatreplace_ns.poses.instance import InstanceGaussians
 from splatreplace_ns.poses.register import register_instances, with_floor_up_axis
 
 
+def leave_lone_copies(registration: Dict[int, Dict], classes: Dict[int, str], min_copies: int) -> List[int]:
+    """Marks as not registered every instance of a class with fewer than ``min_copies`` registered copies (its
+    template copy included): with no other copy to borrow from, replacing it can only lose. → those instances.
+
+    Args:
+        registration: {instance id: {"success", "message", ...}}, changed in place.
+        classes: {instance id: class name}.
+    """
+    registered: Dict[str, List[int]] = {}
+    for iid, entry in registration.items():
+        if entry["success"]:
+            registered.setdefault(classes[int(iid)], []).append(int(iid))
+    alone = sorted(i for ids in registered.values() if len(ids) < min_copies for i in ids)
+    for iid in alone:
+        entry = registration[iid]
+        entry["success"] = False
+        entry["message"] = (f"instance {iid}: not replaced: {len(registered[classes[iid]])} registered cop"
+                            f"{'y' if len(registered[classes[iid]]) == 1 else 'ies'} of '{classes[iid]}' (fewer than "
+                            f"{min_copies}), nothing to share")
+    return alone
+
+
 class RegistrationStage:
     """The registration stage (paper §4.2): every selected instance onto its class template, each pose chosen against
     the training images, optionally checked before replacement."""
@@ -75,6 +97,9 @@ class RegistrationStage:
         choice_s = None
         if config.image_choice and config.select == "photometric":
             choice_s = self.choose_poses_by_images(instances, config)
+        alone = leave_lone_copies(model.registration, classes, config.min_class_copies)
+        for iid in alone:
+            CONSOLE.log(f"[bold yellow]{model.registration[iid]['message']}")
         self.registration_report = {
             "time_s": time.perf_counter() - start, "up_axis": [float(v) for v in config.up_axis],
             "failures": [i for i, entry in model.registration.items() if not entry["success"]],

@@ -95,6 +95,9 @@ class RegistrationConfig:
         image_margin_pixels: where the margin between the chosen candidate and its rival is measured: "all": the
             pixels every candidate is ranked on (the instance's and any placed copy's), "pair": the instance's and
             those two copies' only (pixels of far-off candidates, where the two render alike, do not shrink it).
+        min_class_copies: a class is replaced only when at least this many of its copies (its template copy
+            included) are registered: a copy alone has no other to borrow from, and replacing it can only lose
+            (1: every registered instance is replaced, as in the paper).
     """
 
     n_azimuth: int = 5
@@ -137,6 +140,7 @@ class RegistrationConfig:
     image_views: int = 6
     image_score: Literal["pooled", "per_view"] = "pooled"
     image_margin_pixels: Literal["all", "pair"] = "all"
+    min_class_copies: int = 2
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

@@ -21,6 +21,7 @@ PAPER_REGISTRATION: Mapping[str, object] = {
     "upright": False,  # full rigid ICP
     "min_fitness": 0.0,  # every registration is accepted
     "image_choice": False,  # nothing is compared with the training images
+    "min_class_copies": 1,  # a class's one registered copy is replaced too
 }
 """Settings of §4.2 as written (the paper's MASt3R is replaced by the default matcher, which has offline weights)."""
 
@@ -32,6 +33,7 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
     "no_icp": {"icp": False},
     "no_image_choice": {"image_choice": False},  # the colour score chooses, the thresholds accept
+    "no_lone_copies_rule": {"min_class_copies": 1},  # a class's one registered copy is replaced too
 }
 """Variant name → the settings it changes from the defaults."""
 
