@@ -240,3 +240,26 @@ def test_registration_summary_splits_the_refusals_by_the_pose_they_refused():
     rows = [{**_row(0, 1.0, 1.0, {}), "registration": s}, _row(1, 0.0, 0.0, {}, failures=[7])]
     total = summarise(rows)
     assert total["failed_registrations"] == 4 and total["refused_right"] == 1 and total["refused_wrong"] == 1
+
+
+def test_the_users_regime_end_to_end(tmp_path):
+    """``--inputs user``: both methods train on a folder with the images, camera poses and clicks only (no depth, no
+    training masks, COLMAP's sparse points or none), and are scored on the true masks of the test frames alone."""
+    cfg = BenchSuiteConfig(split="dev", seeds=(1,), res="48x36", n_train=10, n_test=2, base_iterations=60,
+                           contrastive_iterations=30, finetune_iterations=30, json=tmp_path / "user.json",
+                           data_root=tmp_path / "data", out_dir=tmp_path / "runs", sequential=True, inputs="user")
+    cfg.main()
+    result = json.loads((tmp_path / "user.json").read_text())
+    (row,) = result["scenes"]
+    assert row["inputs"] == "user" and result["parameters"]["inputs"] == "user"
+    assert "written" in row["sparse_points"]
+    for who in ("baseline", "ours"):  # scored on the same true masks of the test frames
+        assert isinstance(row[who]["psnr_masked"], float)
+    assert row["gain_masked"] == pytest.approx(row["ours"]["psnr_masked"] - row["baseline"]["psnr_masked"])
+    assert row["coverage"] is None  # the classing needs the true depth and masks of the training views
+    folder = tmp_path / "data" / f"{suite.scene_name(1, '48x36', 10, 2)}_user"
+    meta = json.loads((folder / "transforms.json").read_text())
+    train = set(meta["train_filenames"])
+    assert not any("depth_file_path" in f for f in meta["frames"])
+    assert all(("instance_mask_path" in f) == (f["file_path"] not in train) for f in meta["frames"])
+    assert (tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_user_60-30-30" / "result.json").exists()
