@@ -120,14 +120,40 @@ def clusters_of_clicks(
                 "model holds only sparsely (seen in few views); click it where the capture sees it well, or train "
                 "the base stage longer"
             )
-        values, counts = np.unique(clustering.labels[near], return_counts=True)
-        winner = int(values[np.argmax(counts)])
+        winner = vote(clustering.labels[near], means[near], click, clustering.spacing)
         if winner == PLANE:
             raise ClickError(f"{click.source}: this is a supporting surface (floor or wall plane), not an instance")
         if winner == NOISE:
             raise ClickError(f"{click.source}: no instance cluster holds this point (background or loose fuzz)")
         chosen[click.index] = winner
     return chosen
+
+
+def vote(labels: np.ndarray, points: np.ndarray, click: LiftedClick, spacing: float) -> int:
+    """The cluster a click's voters choose, each voter weighted by how near it lies to the click's ray.
+
+    A click picks a pixel, and the pixel shows what its ray passes through. The voters are the solid Gaussians
+    near the lifted point; at an object's foot or edge some of them belong to the floor or the wall beside it,
+    off the ray, and a plain count let them outvote the object the ray hits (or win a tie by label order).
+
+    Args:
+        labels: [V] cluster labels of the voters (PLANE and NOISE included); points: [V, 3] their centres.
+        spacing: the clustering's point spacing (the kernel's width).
+    Returns:
+        The label with the largest sum of weights exp(-d² / 2 spacing²), d the voter's distance from the ray
+        (from the click's point when the click has no camera centre).
+    """
+    point = click.point.double().numpy()
+    if click.camera_centre is not None:
+        origin = click.camera_centre.double().numpy()
+        direction = (point - origin) / max(float(np.linalg.norm(point - origin)), 1e-12)
+        relative = points - origin
+        distance = np.linalg.norm(relative - np.outer(relative @ direction, direction), axis=1)
+    else:
+        distance = np.linalg.norm(points - point, axis=1)
+    weights = np.exp(-0.5 * (distance / max(spacing, 1e-12)) ** 2)
+    values, inverse = np.unique(labels, return_inverse=True)
+    return int(values[np.argmax(np.bincount(inverse, weights=weights))])
 
 
 def on_the_surface(
