@@ -318,6 +318,38 @@ def test_gaussians_near_ray_finds_the_surface_the_rendered_depth_missed():
     assert len(gaussians_near_ray(wall, origin, origin, 0.1, 0.25, 8)) == 0
 
 
+def test_a_click_at_an_objects_foot_picks_the_object_its_ray_passes_through():
+    """At an object's foot the voters near the lifted point are part object (on the click's ray) and part floor
+    beside it (off the ray). Counted alike, five floor voters outvoted three on the ray; a four-four tie went to
+    the floor by label order. Weighted by their distance from the ray, the object the pixel shows wins, and a click
+    whose ray meets only the floor still picks the floor."""
+    from splatreplace_ns.instances.geometric import vote
+    from splatreplace_ns.instances.geometric_config import PLANE
+
+    camera = torch.tensor([0.0, 0.0, 0.0])
+    spacing = 0.1
+    point = np.array([0.0, 0.0, 2.0])  # the lifted click, on a ray along +z
+    on_ray = np.array([[0.01, 0.0, 2.1], [0.0, 0.02, 2.15], [-0.01, 0.0, 2.2]])  # the object, 0.1-0.2 spacings off
+    beside = np.array([[0.16, 0.0, 2.0], [-0.15, 0.03, 2.05], [0.0, 0.16, 1.95], [0.02, -0.17, 2.0], [0.15, 0.1, 2.0]])
+    click = LiftedClick(0, 0, (0.0, 0.0), "box", torch.tensor(point, dtype=torch.float32), "click 0", camera)
+    labels = np.array([3] * len(on_ray) + [PLANE] * len(beside))
+    points = np.concatenate([on_ray, beside])
+    assert vote(labels, points, click, spacing) == 3
+    # the count alone picks the floor (5 against 3): what the weights overturn
+    values, counts = np.unique(labels, return_counts=True)
+    assert values[np.argmax(counts)] == PLANE
+    # a tie, four and four: the floor is the smaller label, the object still wins
+    tie = np.array([3] * 3 + [PLANE] * 4)
+    assert vote(np.append(tie, 3), np.concatenate([on_ray, beside[:4], [[0.0, -0.01, 2.12]]]), click, spacing) == 3
+    # a click on the open floor: every voter lies on the floor under the ray's end, the floor wins
+    floor_under_ray = on_ray + [0.0, 0.0, -0.05]  # the ray meets only the floor
+    assert vote(np.array([PLANE] * 3 + [3, 3]), np.concatenate([floor_under_ray, beside[:2]]), click, spacing) == PLANE
+    # without a camera centre the distance is taken from the lifted point
+    no_camera = LiftedClick(2, 0, (0.0, 0.0), "box", torch.tensor(point, dtype=torch.float32), "click 2")
+    assert vote(np.array([3, PLANE, PLANE]), np.array([[0.0, 0.0, 2.01], [0.19, 0.0, 2.0], [0.0, 0.19, 2.0]]),
+                no_camera, spacing) == 3
+
+
 def test_bad_clicks_are_named():
     means, truth, colours = boxes_on_a_floor()
     opacities = np.ones(len(means))

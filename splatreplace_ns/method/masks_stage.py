@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, List, Optional, Set
 
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from splatreplace_ns.datamanager.clicks import check_clicks, clicks_digest, clicks_file_appeared, load_clicks
+from splatreplace_ns.datamanager.clicks import Click, check_clicks, clicks_digest, clicks_file_appeared, load_clicks
 from splatreplace_ns.datamanager.click_masks import MASKS_DIR
 from splatreplace_ns.datamanager.file_checks import image_size
 from splatreplace_ns.datamanager.files import check_writable
@@ -41,6 +41,20 @@ class MasksStage:
         if meta.get(MASKS_SOURCE_KEY) != "clicks":
             return None
         return meta.get(CLICKS_DIGEST_KEY) or None
+
+    def _clicks_without_masks(self, clicks: List[Click]) -> Set[int]:
+        """Positions in ``clicks`` of the clicks the dataset's masks were made from but that made no mask (left out
+        at the masks step: on a plane, on empty space, on an instance another click took). Empty when the masks
+        were not made from these clicks."""
+        from splatreplace_ns.datamanager.click_masks import with_click_masks
+
+        made_from = self._click_masks_digest()
+        if made_from is None or clicks_digest(clicks) != made_from:
+            return set()
+        transforms = self.transforms_path()
+        meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
+        ids = {int(instance["id"]) for instance in meta.get("instances", [])}
+        return {click.index for click in clicks if click.index + 1 not in ids}
 
     def _masks_made_from_other_clicks(self) -> bool:
         """Whether the dataset's masks were made (``splatreplace masks`` or an earlier run) from clicks other than

@@ -228,7 +228,16 @@ class SegmentationStage:
             path = self.clicks_path()
             if not path.exists():
                 raise FileNotFoundError(self.no_segmentation_clicks_message())
-            for click in load_clicks(path):
+            clicks = load_clicks(path)
+            maskless = self._clicks_without_masks(clicks)
+            for click in clicks:
+                if click.index in maskless:
+                    # the contrastive features never learnt its instance apart: its query would pick another's
+                    message = (f"click {click.index} ({click.file_path} at {click.xy}): made no instance mask at the "
+                               "masks step, so no instance is selected from it")
+                    CONSOLE.log(f"[bold yellow]skipped: {message}")
+                    skipped.append(message)
+                    continue
                 try:
                     self.add_click(click)
                 except SelectionError as err:  # one bad click must not throw away the training run
