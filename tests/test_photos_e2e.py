@@ -301,6 +301,9 @@ def test_ns_train_runs_the_method_from_the_photos(capture, tmp_path):
     # Over the 24 runs that got here, each with its own COLMAP run, the clicked crate scored 0.139-0.52 (each run's
     # lowest 0.139-0.29) and, in the runs where every click made its mask, another crate at most 0.06, at least 5.2
     # times less than the clicked one in its row. A mask of the wrong crate fails the argmax, an empty one the floor.
+    # One further run failed the argmax: click 0 was left out as on the floor, and crate 1, with no seed of its own,
+    # went to click 1's mask (IoU 0.18 against crate 2's own 0.095). That is a defect of the split when a click is
+    # lost (an object without a seed is given to a neighbour's), open, not a fault of the test.
     # A click left out at the masks step has no mask (its row is 0): the rows of the others are checked. Its crate
     # then has no seed of its own in the split, and part of it goes to a clicked neighbour's mask (one run: 0.078
     # against the clicked crate's 0.18): the purity ratio holds only when every click made its mask.
