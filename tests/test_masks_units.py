@@ -350,6 +350,25 @@ def test_a_click_at_an_objects_foot_picks_the_object_its_ray_passes_through():
                 no_camera, spacing) == 3
 
 
+def test_a_lost_clicks_object_is_not_given_to_its_neighbours_instance():
+    """Boxes b and c touch (one cluster). With c's click lost (left out as on the floor), the split used to give all
+    of c to b's click; c's lost click now seeds the split too, and what it wins stays background."""
+    means, truth, colours = boxes_on_a_floor()
+    opacities = np.ones(len(means))
+    cfg = ClusteringConfig()
+    clustering = cluster_gaussians(means, opacities, cfg)
+    clicks = [lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.8, -0.1, 0.5])]
+    given_away = instance_ids(clicks, means, opacities, colours, clustering, cfg)
+    assert (given_away[truth == 3] == 2).mean() > 0.5  # without the lost click, b's instance takes most of c
+    kept = instance_ids(clicks, means, opacities, colours, clustering, cfg, lost=[lifted(2, [0.8, 0.6, 0.5])])
+    assert (kept[truth == 3] == 2).mean() < 0.05 and (kept[truth == 3] == 0).mean() > 0.9
+    b = kept == 2
+    assert (b & (truth == 2)).sum() / (b | (truth == 2)).sum() > 0.9  # b's own instance is whole
+    # a lost click on the open floor seeds nothing: the instances are as without it
+    on_floor = instance_ids(clicks, means, opacities, colours, clustering, cfg, lost=[lifted(2, [0.0, 1.5, 0.0])])
+    assert (on_floor == given_away).all()
+
+
 def test_bad_clicks_are_named():
     means, truth, colours = boxes_on_a_floor()
     opacities = np.ones(len(means))

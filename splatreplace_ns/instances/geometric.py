@@ -19,7 +19,7 @@ import numpy as np
 from splatreplace_ns.instances.geometric_config import Clustering, ClusteringConfig, NOISE, PLANE
 from splatreplace_ns.instances.planes import cut_off_the_floor, floor_plane, remove_planes
 from splatreplace_ns.instances.point_cloud import dbscan_labels, nearby_points, neighbourhood_spacing
-from splatreplace_ns.instances.projection import ClickError, DuplicateClicksError, LiftedClick
+from splatreplace_ns.instances.projection import ClickError, DuplicateClicksError, LiftedClick, OnPlaneClickError
 from splatreplace_ns.instances.random_walk import (
     Walk,
     colour_bin,
@@ -122,7 +122,7 @@ def clusters_of_clicks(
             )
         winner = vote(clustering.labels[near], means[near], click, clustering.spacing)
         if winner == PLANE:
-            raise ClickError(f"{click.source}: this is a supporting surface (floor or wall plane), not an instance")
+            raise OnPlaneClickError(f"{click.source}: this is a supporting surface (floor or wall plane), not an instance")
         if winner == NOISE:
             raise ClickError(f"{click.source}: no instance cluster holds this point (background or loose fuzz)")
         chosen[click.index] = winner
@@ -244,7 +244,7 @@ def click_voters(
 
 def instance_ids(
     clicks: Sequence[LiftedClick], means: np.ndarray, opacities: np.ndarray, colours: np.ndarray,
-    clustering: Clustering, cfg: ClusteringConfig,
+    clustering: Clustering, cfg: ClusteringConfig, lost: Sequence[LiftedClick] = (),
 ) -> np.ndarray:
     """Per-Gaussian instance id: click number ``i`` (0-based position in ``clicks``) → id ``i + 1``; 0 = background.
 
@@ -253,6 +253,10 @@ def instance_ids(
     object clicked twice. Then what lies low beside an instance, away from everything of it higher up, goes to
     the background (:func:`cut_off_the_floor`), and plane Gaussians of an instance's class colour next to it
     join it (:func:`reclaim_by_colour`).
+
+    ``lost``: clicks left out as on a supporting plane. Each still marks an object the user clicked: where its
+    voters off the plane lie in a cluster being given to other clicks, it seeds that cluster's split too, and what
+    it wins stays background instead of going to a neighbour's instance.
 
     Raises:
         ClickError: from :func:`clusters_of_clicks`, or two clicks on the same spot of one cluster.
@@ -276,13 +280,16 @@ def instance_ids(
         if height is not None and len(own) >= 10:
             bottoms.setdefault(cls, []).append(float(np.percentile(height[own], 2)))
 
+    lost_points = lost_seeds(lost, means, opacities, clustering, cfg, set(by_cluster))
     for cluster, positions in by_cluster.items():
         members = np.flatnonzero(clustering.labels == cluster)
         points = np.stack([clicks[p].point.double().numpy() for p in positions])
         if len(positions) > 1:
             check_distinct_clicks([clicks[p] for p in positions], points, clustering.spacing, cfg)
+        # seeds after the clicks' own: what they win stays background
+        points = np.concatenate([points] + lost_points.get(cluster, []))
         floor_near = nearby_points(means[on_plane], means[members], cfg.background_radius * clustering.spacing)
-        if len(positions) == 1 and not len(floor_near):
+        if len(points) == 1 and not len(floor_near):
             ids[members] = positions[0] + 1
             samples.setdefault(clicks[positions[0]].cls, []).append(colours[members])
             note_heights(clicks[positions[0]].cls, members)
@@ -321,6 +328,29 @@ def instance_ids(
     if cfg.colour_reclaim_radius > 0:
         ids = reclaim_by_colour(ids, means, colours, on_plane, histograms, [c.cls for c in clicks], clustering.spacing, cfg)
     return ids
+
+
+def lost_seeds(
+    lost: Sequence[LiftedClick], means: np.ndarray, opacities: np.ndarray, clustering: Clustering,
+    cfg: ClusteringConfig, clusters: set,
+) -> Dict[int, List[np.ndarray]]:
+    """cluster → [[1, 3] point] of each lost click whose voters off the planes choose one of ``clusters`` (by the
+    same ray-weighted vote as a click's); a lost click with no such voter seeds nothing."""
+    from scipy.spatial import cKDTree
+
+    solid = np.flatnonzero((opacities >= cfg.min_opacity) & (clustering.labels >= 0))
+    out: Dict[int, List[np.ndarray]] = {}
+    if not len(solid):
+        return out
+    tree = cKDTree(means[solid])
+    for click in on_the_surface(lost, means, opacities, clustering.spacing, cfg):
+        near, point = click_voters(click, means, solid, tree, clustering.spacing, cfg)
+        if not len(near):
+            continue
+        cluster = vote(clustering.labels[near], means[near], click, clustering.spacing)
+        if cluster in clusters:
+            out.setdefault(cluster, []).append(np.asarray(point, dtype=np.float64)[None])
+    return out
 
 
 def reclaim_by_colour(

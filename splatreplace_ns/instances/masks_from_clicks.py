@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -35,6 +35,7 @@ from splatreplace_ns.instances.projection import (
     ClickError,
     DuplicateClicksError,
     LiftedClick,
+    OnPlaneClickError,
     frames_holding,
     lift_click,
     project_points,
@@ -116,22 +117,26 @@ def lift_clicks(
 def usable_clicks(
     model, frames: FrameCameras, clicks: List[Click], cfg: MaskSettings, clustering: Clustering,
     renders: Optional[FrameRenders] = None,
-) -> Tuple[List[int], List[LiftedClick], List[str]]:
+) -> Tuple[List[int], List[LiftedClick], List[str], List[LiftedClick]]:
     """The clicks that make an instance on their own: their positions in ``clicks`` and their lifted points;
-    and the error of each other one."""
+    the error of each other one; and the lifted points of those left out as on a supporting plane (each still
+    marks an object the user clicked, which no other click's instance should take)."""
     means = model.means.detach().cpu().double().numpy()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    positions, lifted, errors = [], [], []
+    positions, lifted, errors, lost = [], [], [], []
     for position, click in enumerate(clicks):
+        point = None
         try:
             point = lift_clicks(model, frames, [click], cfg.min_alpha, renders)
             clusters_of_clicks(point, means, opacities, clustering, cfg.clustering)
         except ClickError as err:
             errors.append(str(err))
+            if isinstance(err, OnPlaneClickError) and point is not None:
+                lost.extend(point)
             continue
         positions.append(position)
         lifted.extend(point)
-    return positions, lifted, errors
+    return positions, lifted, errors, lost
 
 
 def model_clustering(model, cfg: ClusteringConfig, frames: Optional[FrameCameras] = None) -> Clustering:
@@ -150,13 +155,15 @@ def model_clustering(model, cfg: ClusteringConfig, frames: Optional[FrameCameras
 
 
 def instance_labels_of_gaussians(
-    model, lifted: List[LiftedClick], cfg: ClusteringConfig, clustering: Clustering
+    model, lifted: List[LiftedClick], cfg: ClusteringConfig, clustering: Clustering,
+    lost: Sequence[LiftedClick] = (),
 ) -> torch.Tensor:
     """[N] instance id per Gaussian (click k → id k + 1, 0 = background), from ``clustering`` of the model's
-    Gaussians (:func:`model_clustering`; the viewer checks every click against one clustering)."""
+    Gaussians (:func:`model_clustering`; the viewer checks every click against one clustering). ``lost``: clicks
+    left out as on a plane, whose objects stay background (:func:`instance_ids`)."""
     means = model.means.detach().cpu().double().numpy()
     opacities = torch.sigmoid(model.opacities.detach()).cpu().numpy().reshape(-1)
-    return torch.from_numpy(instance_ids(lifted, means, opacities, gaussian_colours(model), clustering, cfg))
+    return torch.from_numpy(instance_ids(lifted, means, opacities, gaussian_colours(model), clustering, cfg, lost))
 
 
 def gaussian_colours(model) -> np.ndarray:
@@ -250,14 +257,14 @@ def masks_from_model(
     if clustering is None:
         clustering = model_clustering(model, cfg.clustering, frames)
     if cfg.skip_bad_clicks:
-        positions, lifted, skipped = usable_clicks(model, frames, clicks, cfg, clustering, renders)
+        positions, lifted, skipped, lost = usable_clicks(model, frames, clicks, cfg, clustering, renders)
         if not positions:
             raise ClickError("no click makes an instance:\n" + "\n".join(skipped))
     else:
-        positions, lifted, skipped = list(range(len(clicks))), lift_clicks(model, frames, clicks, cfg.min_alpha, renders), []
+        positions, lifted, skipped, lost = list(range(len(clicks))), lift_clicks(model, frames, clicks, cfg.min_alpha, renders), [], []
     while True:
         try:
-            instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering)
+            instance_of_gaussian = instance_labels_of_gaussians(model, lifted, cfg.clustering, clustering, lost)
             break
         except DuplicateClicksError as err:
             drop = {k for k, click in enumerate(lifted) if click.source in err.sources}

@@ -22,6 +22,10 @@ class ClickError(ValueError):
     """A click that cannot become an instance; the message names the click."""
 
 
+class OnPlaneClickError(ClickError):
+    """A click whose point lies on a supporting plane (the floor, a wall) rather than on an instance."""
+
+
 class DuplicateClicksError(ClickError):
     """Two clicks on one spot of one object; ``sources`` names both."""
 
