@@ -335,9 +335,8 @@ def test_a_click_at_an_objects_foot_picks_the_object_its_ray_passes_through():
     labels = np.array([3] * len(on_ray) + [PLANE] * len(beside))
     points = np.concatenate([on_ray, beside])
     assert vote(labels, points, click, spacing) == 3
-    # the count alone picks the floor (5 against 3): what the weights overturn
-    values, counts = np.unique(labels, return_counts=True)
-    assert values[np.argmax(counts)] == PLANE
+    # the count alone (``ray_weighted_vote`` off) picks the floor, 5 against 3: what the weights overturn
+    assert vote(labels, points, click, spacing, weighted=False) == PLANE
     # a tie, four and four: the floor is the smaller label, the object still wins
     tie = np.array([3] * 3 + [PLANE] * 4)
     assert vote(np.append(tie, 3), np.concatenate([on_ray, beside[:4], [[0.0, -0.01, 2.12]]]), click, spacing) == 3
@@ -364,6 +363,9 @@ def test_a_lost_clicks_object_is_not_given_to_its_neighbours_instance():
     assert (kept[truth == 3] == 2).mean() < 0.05 and (kept[truth == 3] == 0).mean() > 0.9
     b = kept == 2
     assert (b & (truth == 2)).sum() / (b | (truth == 2)).sum() > 0.9  # b's own instance is whole
+    switched_off = dataclasses.replace(cfg, lost_click_seeds=False)
+    assert (instance_ids(clicks, means, opacities, colours, clustering, switched_off,
+                         lost=[lifted(2, [0.8, 0.6, 0.5])]) == given_away).all()
     # a lost click on the open floor seeds nothing: the instances are as without it
     on_floor = instance_ids(clicks, means, opacities, colours, clustering, cfg, lost=[lifted(2, [0.0, 1.5, 0.0])])
     assert (on_floor == given_away).all()

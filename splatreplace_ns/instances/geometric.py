@@ -120,7 +120,7 @@ def clusters_of_clicks(
                 "model holds only sparsely (seen in few views); click it where the capture sees it well, or train "
                 "the base stage longer"
             )
-        winner = vote(clustering.labels[near], means[near], click, clustering.spacing)
+        winner = vote(clustering.labels[near], means[near], click, clustering.spacing, cfg.ray_weighted_vote)
         if winner == PLANE:
             raise OnPlaneClickError(f"{click.source}: this is a supporting surface (floor or wall plane), not an instance")
         if winner == NOISE:
@@ -129,7 +129,7 @@ def clusters_of_clicks(
     return chosen
 
 
-def vote(labels: np.ndarray, points: np.ndarray, click: LiftedClick, spacing: float) -> int:
+def vote(labels: np.ndarray, points: np.ndarray, click: LiftedClick, spacing: float, weighted: bool = True) -> int:
     """The cluster a click's voters choose, each voter weighted by how near it lies to the click's ray.
 
     A click picks a pixel, and the pixel shows what its ray passes through. The voters are the solid Gaussians
@@ -139,10 +139,14 @@ def vote(labels: np.ndarray, points: np.ndarray, click: LiftedClick, spacing: fl
     Args:
         labels: [V] cluster labels of the voters (PLANE and NOISE included); points: [V, 3] their centres.
         spacing: the clustering's point spacing (the kernel's width).
+        weighted: False counts every voter once (ties to the smallest label).
     Returns:
         The label with the largest sum of weights exp(-d² / 2 spacing²), d the voter's distance from the ray
         (from the click's point when the click has no camera centre).
     """
+    if not weighted:
+        values, counts = np.unique(labels, return_counts=True)
+        return int(values[np.argmax(counts)])
     point = click.point.double().numpy()
     if click.camera_centre is not None:
         origin = click.camera_centre.double().numpy()
@@ -280,7 +284,7 @@ def instance_ids(
         if height is not None and len(own) >= 10:
             bottoms.setdefault(cls, []).append(float(np.percentile(height[own], 2)))
 
-    lost_points = lost_seeds(lost, means, opacities, clustering, cfg, set(by_cluster))
+    lost_points = lost_seeds(lost, means, opacities, clustering, cfg, set(by_cluster)) if cfg.lost_click_seeds else {}
     for cluster, positions in by_cluster.items():
         members = np.flatnonzero(clustering.labels == cluster)
         points = np.stack([clicks[p].point.double().numpy() for p in positions])
@@ -347,7 +351,7 @@ def lost_seeds(
         near, point = click_voters(click, means, solid, tree, clustering.spacing, cfg)
         if not len(near):
             continue
-        cluster = vote(clustering.labels[near], means[near], click, clustering.spacing)
+        cluster = vote(clustering.labels[near], means[near], click, clustering.spacing, cfg.ray_weighted_vote)
         if cluster in clusters:
             out.setdefault(cluster, []).append(np.asarray(point, dtype=np.float64)[None])
     return out

@@ -49,6 +49,12 @@ class ClusteringConfig:
     """Solid Gaussians nearest to a lifted click that vote for its cluster."""
     click_radius: float = 2.0
     """The voting Gaussians must lie within this many spacings of the lifted click."""
+    ray_weighted_vote: bool = True
+    """Weigh each voter by exp(-d²/2s²), d its distance from the click's ray and s the spacing (a pixel shows what
+    its ray passes through, not the floor beside it); False: one vote each."""
+    lost_click_seeds: bool = True
+    """A click left out as on a plane still seeds the split of the cluster its object is in, and what it wins stays
+    background (instead of going to a neighbour's instance); False: it seeds nothing."""
     ray_depth_slack: float = 0.25
     """When none does (the rendered depth missed the surface), the voters are the solid Gaussians within
     ``click_radius`` spacings of the click's ray whose depth along it is within this fraction of the click's, or,

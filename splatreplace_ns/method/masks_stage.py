@@ -29,30 +29,33 @@ class MasksStage:
         data = Path(self.datamanager.get_datapath())
         return data if data.suffix == ".json" else data / "transforms.json"
 
-    def _click_masks_digest(self) -> Optional[str]:
-        """Fingerprint of the clicks the dataset's masks were made from; None when its masks are not made from
-        clicks (ground truth, a person's) or it has none."""
-        from splatreplace_ns.datamanager.click_masks import CLICKS_DIGEST_KEY, MASKS_SOURCE_KEY, with_click_masks
+    def _click_masks_meta(self) -> Optional[Dict]:
+        """transforms.json with the masks made from clicks in it; None when its masks are not made from clicks
+        (ground truth, a person's) or it has none."""
+        from splatreplace_ns.datamanager.click_masks import MASKS_SOURCE_KEY, with_click_masks
 
         if not self.datamanager.has_instance_masks:
             return None
         transforms = self.transforms_path()
         meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
-        if meta.get(MASKS_SOURCE_KEY) != "clicks":
-            return None
-        return meta.get(CLICKS_DIGEST_KEY) or None
+        return meta if meta.get(MASKS_SOURCE_KEY) == "clicks" else None
+
+    def _click_masks_digest(self) -> Optional[str]:
+        """Fingerprint of the clicks the dataset's masks were made from (None: see :meth:`_click_masks_meta`)."""
+        from splatreplace_ns.datamanager.click_masks import CLICKS_DIGEST_KEY
+
+        meta = self._click_masks_meta()
+        return None if meta is None else meta.get(CLICKS_DIGEST_KEY) or None
 
     def _clicks_without_masks(self, clicks: List[Click]) -> Set[int]:
         """Positions in ``clicks`` of the clicks the dataset's masks were made from but that made no mask (left out
         at the masks step: on a plane, on empty space, on an instance another click took). Empty when the masks
         were not made from these clicks."""
-        from splatreplace_ns.datamanager.click_masks import with_click_masks
+        from splatreplace_ns.datamanager.click_masks import CLICKS_DIGEST_KEY
 
-        made_from = self._click_masks_digest()
-        if made_from is None or clicks_digest(clicks) != made_from:
+        meta = self._click_masks_meta()
+        if meta is None or clicks_digest(clicks) != meta.get(CLICKS_DIGEST_KEY):
             return set()
-        transforms = self.transforms_path()
-        meta = with_click_masks(json.loads(transforms.read_text()), transforms.parent)
         ids = {int(instance["id"]) for instance in meta.get("instances", [])}
         return {click.index for click in clicks if click.index + 1 not in ids}
 

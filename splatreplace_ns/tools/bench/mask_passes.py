@@ -28,6 +28,8 @@ PASSES: Dict[str, Dict[str, object]] = {
     "two_sidedness": {"max_two_sidedness": 0.5},
     "floor_under_band": {"floor_under_band": 0.0},
     "colour_reclaim": {"colour_reclaim_radius": 0.0},
+    "ray_weighted_vote": {"ray_weighted_vote": False},
+    "lost_click_seeds": {"lost_click_seeds": False},
 }
 
 
