@@ -197,6 +197,28 @@ def test_skip_bad_clicks_makes_the_other_masks_and_keeps_their_ids(base_run, tmp
         make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
 
 
+def test_a_click_whose_instance_gets_no_gaussian_makes_no_instance(base_run, tmp_path, monkeypatch):
+    """When a neighbouring click's instance takes a clicked object whole, that click is reported as skipped and
+    listed as no instance (it would select nothing later), rather than counted as made with an empty mask."""
+    import splatreplace_ns.instances.masks_from_clicks as masks_from_clicks
+
+    _, capture, report = base_run
+    data = tmp_path / "taken"
+    shutil.copytree(capture, data)
+    real = masks_from_clicks.instance_labels_of_gaussians
+
+    def first_taken_by_second(*args, **kwargs):
+        ids = real(*args, **kwargs).clone()
+        ids[ids == 1] = 2
+        return ids
+
+    monkeypatch.setattr(masks_from_clicks, "instance_labels_of_gaussians", first_taken_by_second)
+    made = make_masks(MasksCommand(data, load_config=report["config"], skip_bad_clicks=True))
+    assert len(made["skipped_clicks"]) == 1 and made["skipped_clicks"][0].startswith("click 0 (images/")
+    assert "no Gaussian" in made["skipped_clicks"][0] and 1 not in made["gaussians_per_instance"]
+    assert read_dataset_meta(data)["instances"] == [{"id": k, "class": "crate"} for k in (2, 3)]
+
+
 def test_onnx_sam_backend_with_a_tiny_exported_pair(base_run, tmp_path):
     from test_masks_onnx import export_tiny_sam
 

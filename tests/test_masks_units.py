@@ -224,6 +224,24 @@ def test_geodesic_split_gives_a_seedless_clump_to_its_nearest_side():
     assert (owner[:400][left[:, 0] < -0.2] == 0).all() and (owner[400:800][right[:, 0] > 0.2] == 1).all()
 
 
+def test_a_point_unreached_inside_a_shared_component_does_not_take_the_component():
+    from splatreplace_ns.instances.random_walk import adopt_unreached, knn_graph
+
+    # three boxes in a row, one connected kNN graph; the walk owns the boxes 0, 1, 2 except one point of the
+    # middle box that it reached only at leak level (-1): that point alone is adopted, by its nearest owner
+    rng = np.random.default_rng(1)
+    means = np.concatenate([rng.uniform([x, 0, 0], [x + 1.0, 1, 1], (300, 3)) for x in (0.0, 1.0, 2.0)])
+    graph = knn_graph(means, np.zeros_like(means), 0.1, ClusteringConfig())
+    owner = np.repeat(np.arange(3), 300)
+    lone = 450
+    owner[lone] = -1
+    out = adopt_unreached(means, owner, graph)
+    kept = np.arange(len(owner)) != lone
+    assert (out[kept] == owner[kept]).all()  # every reached point keeps its owner
+    others = np.flatnonzero(kept)
+    assert out[lone] == owner[others[np.argmin(np.linalg.norm(means[others] - means[lone], axis=1))]]
+
+
 def test_random_walk_split_cuts_at_the_colour_change_not_at_the_midpoint():
     """Two touching boxes of different colours, the left one clicked at its far end and the right one next to
     the contact: the geodesic cut (colour-weighted) still runs well inside the left box, the random walker's

@@ -290,8 +290,16 @@ def masks_from_model(
         else:
             mask = sam_view_labels(model, sam, camera, image, instance_of_gaussian, lifted, cfg.border.min_weight)
         masks.append(click_id[mask.astype(np.int64)])
-    instances = [{"id": p + 1, "class": clicks[p].cls} for p in positions]
     counts = {p + 1: int((instance_of_gaussian == k + 1).sum()) for k, p in enumerate(positions)}
+    # a click whose object another click's instance took whole has no mask: it makes no instance, and says so
+    for p in positions:
+        if counts[p + 1] == 0:
+            click = clicks[p]
+            skipped.append(f"click {click.index} ({click.file_path} at {list(click.xy)}): no Gaussian of the base "
+                           f"model went to its instance (a neighbouring click's instance holds its object), so it "
+                           f"has no mask")
+            counts.pop(p + 1)
+    instances = [{"id": p + 1, "class": clicks[p].cls} for p in positions if p + 1 in counts]
     report = {
         "instances": instances,
         "gaussians_per_instance": counts,

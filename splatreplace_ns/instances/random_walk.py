@@ -198,12 +198,13 @@ def random_walk_split(
 
 
 def adopt_unreached(means: np.ndarray, owner: np.ndarray, graph) -> np.ndarray:
-    """Gives every kNN-graph component that no seed reaches, as a whole, to the owner of the reached point
-    nearest to it.
+    """Gives the unreached points of every kNN-graph component, together, to the owner of the reached point
+    nearest to them; reached points keep their owners.
 
     A kNN graph of a DBSCAN cluster is often not connected: a dense clump of Gaussians (many near-duplicates
     on a well-seen surface) keeps all its k nearest neighbours inside itself. Left unowned, such clumps were
-    half of a chair on the office scene.
+    half of a chair on the office scene. A component can also hold both: a point the walk reaches only at leak
+    level (its weights underflow) inside a component the seeds share; only that point is adopted.
 
     Args:
         means: [P, 3]; owner: [P] seed index, :data:`SHARED` (reached, left to the background) or -1
@@ -221,8 +222,9 @@ def adopt_unreached(means: np.ndarray, owner: np.ndarray, graph) -> np.ndarray:
     _, component = connected_components(graph, directed=False)
     out = owner.copy()
     tree = cKDTree(means[reached])
-    for c in np.unique(component[owner == -1]):
-        members = np.flatnonzero(component == c)
+    unreached = owner == -1
+    for c in np.unique(component[unreached]):
+        members = np.flatnonzero((component == c) & unreached)
         dist, nearest = tree.query(means[members], k=1)
         out[members] = owner[reached[nearest[np.argmin(dist)]]]
     return out
