@@ -392,6 +392,7 @@ def train_variant_reusing_baseline(data: Path, cfg: BenchSuiteConfig, clock: "St
     if not variant_label(cfg):
         raise ValueError("--reuse-baseline needs a variant (--registration or --overrides)")
     previous, baseline = defaults_baseline(data, cfg)
+    forget_click_masks(data)  # a variant of an earlier stage makes its own masks, from its own base model
     config = make_trainer_config(data, run_folder(cfg, scene_of(data, cfg.inputs).name), cfg.base_iterations, cfg.contrastive_iterations,
                                  cfg.finetune_iterations, experiment_name="ours", progress=True)
     configure_ours(cfg)(config)
