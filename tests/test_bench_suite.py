@@ -263,3 +263,33 @@ def test_the_users_regime_end_to_end(tmp_path):
     assert not any("depth_file_path" in f for f in meta["frames"])
     assert all(("instance_mask_path" in f) == (f["file_path"] not in train) for f in meta["frames"])
     assert (tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_user_60-30-30" / "result.json").exists()
+
+
+def test_colmap_poses_go_with_the_users_regime_and_name_their_folders():
+    from pathlib import Path
+
+    cfg = BenchSuiteConfig(out_dir=Path("runs"), inputs="user", poses="colmap")
+    assert suite.regime(cfg) == "user+colmap"
+    assert suite.run_folder(cfg, "s").name == "s_user-colmap_1500-500-1000"
+    with pytest.raises(ValueError, match="--poses colmap goes with --inputs user"):
+        suite.regime(BenchSuiteConfig(poses="colmap"))
+
+
+def test_a_scene_colmap_cannot_pose_is_a_row_that_says_so(tmp_path, monkeypatch, capsys):
+    """A user whose photos COLMAP cannot pose has nothing to train: the scene's row says so and carries no figure,
+    the summary lists it, the other scenes' figures stand."""
+    def no_model(scene, inputs):
+        raise RuntimeError("ns-process-data failed on photos (exit 1): ...ERROR: failed to create sparse model")
+
+    monkeypatch.setattr(suite, "make_regime_folder", no_model)
+    cfg = BenchSuiteConfig(split="dev", seeds=(1,), res="48x36", n_train=10, n_test=2, base_iterations=60,
+                           contrastive_iterations=30, finetune_iterations=30, json=tmp_path / "colmap.json",
+                           data_root=tmp_path / "data", out_dir=tmp_path / "runs", sequential=True, inputs="user",
+                           poses="colmap")
+    cfg.main()
+    result = json.loads((tmp_path / "colmap.json").read_text())
+    (row,) = result["scenes"]
+    assert row["gain_masked"] is None and row["ours"]["psnr_masked"] is None and "failed to create" in row["error"]
+    assert result["summary"]["not_posed"] == [1] and result["summary"]["gain_masked_mean"] is None
+    assert result["parameters"]["poses"] == "colmap"
+    assert "seed 1: not run: ns-process-data failed" in capsys.readouterr().out

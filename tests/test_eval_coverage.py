@@ -268,7 +268,8 @@ def test_suite_rows_compare_the_classes_and_survive_an_old_baseline():
 
 
 def test_a_variant_reads_the_baseline_classes_from_the_defaults_result(tmp_path):
-    from splatreplace_ns.tools.bench.suite import BenchSuiteConfig, defaults_baseline, run_folder
+    from splatreplace_ns.tools.bench.suite import BenchSuiteConfig, run_folder
+    from splatreplace_ns.tools.bench.suite_variants import defaults_baseline
 
     cfg = BenchSuiteConfig(out_dir=tmp_path, registration="paper")
     data = tmp_path / "random_1_48x36_10v2"

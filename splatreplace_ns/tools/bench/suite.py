@@ -30,7 +30,10 @@ import torch
 
 from splatreplace_ns.tools.bench.output import publish, write_result_json
 from splatreplace_ns.tools.bench.suite_output import WRONG_POSE_DEG, print_suite, write_gain_plot
-from splatreplace_ns.tools.bench.user_inputs import inputs_report, make_regime_folder, scene_of
+from splatreplace_ns.tools.bench.suite_variants import (
+    forget_click_masks, train_variant_from_segmentation, train_variant_reusing_baseline,
+)
+from splatreplace_ns.tools.bench.user_inputs import inputs_report, make_regime_folder
 from splatreplace_ns.tools.demo import DemoCommand
 
 DEV_SEEDS: Tuple[int, ...] = tuple(range(100))
@@ -100,6 +103,10 @@ class BenchSuiteConfig:
     clicks, plus the true instance masks and depth of every frame and a point cloud from the true depth. user: what a
     user has: images, camera poses and clicks.json, COLMAP's sparse points; the true masks of the test views only
     score. user+masks / user+depth / user+points: the user's regime with that one exact input given back."""
+    poses: Literal["exact", "colmap"] = "exact"
+    """Camera poses both methods train with: the scene's (exact) or COLMAP's, from ``ns-process-data`` on the training
+    images (colmap, with --inputs user: intrinsics and sparse cloud COLMAP's too; the true test cameras are moved into
+    COLMAP's frame to score, ``splatreplace_ns.tools.bench.colmap_poses``)."""
     training_seed: Optional[int] = None
     """Training seed of ours and the baseline: nerfstudio's machine.seed and the order the training views are drawn
     in (default: nerfstudio's 42). The same scenes trained again with another seed give the suite's run-to-run
@@ -128,6 +135,15 @@ def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
     return list(pool[:count])
 
 
+def regime(cfg: BenchSuiteConfig) -> str:
+    """The ``user_inputs`` regime of a configuration: ``--inputs``, or ``user+colmap`` with ``--poses colmap``."""
+    if cfg.poses == "exact":
+        return cfg.inputs
+    if cfg.inputs != "user":
+        raise ValueError(f"--poses colmap goes with --inputs user (COLMAP poses a user's photos), not {cfg.inputs}")
+    return "user+colmap"
+
+
 def variant_label(cfg: BenchSuiteConfig) -> str:
     """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
     ``reg-ours+pipeline.gate.enabled=True``."""
@@ -142,7 +158,7 @@ def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> 
     label = "" if default else variant_label(cfg)
     safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
     seed = "" if cfg.training_seed is None else f"_seed{cfg.training_seed}"
-    inputs = "" if cfg.inputs == "exact" else f"_{cfg.inputs.replace('+', '-')}"
+    inputs = "" if regime(cfg) == "exact" else f"_{regime(cfg).replace('+', '-')}"
     return cfg.out_dir / (f"{data_name}{inputs}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
 
 
@@ -244,9 +260,15 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
     start = time.perf_counter()
     scene = cached_random_scene(seed, res, cfg.n_train, cfg.n_test, cfg.data_root)
-    data = make_regime_folder(scene, cfg.inputs)  # what both methods are given
-    sim_s = time.perf_counter() - start
     meta = json.loads((scene / "transforms.json").read_text())
+    try:
+        data = make_regime_folder(scene, regime(cfg))  # what both methods are given
+    except RuntimeError as err:  # COLMAP could not pose the photos: a user would have no dataset to train on
+        if cfg.poses != "colmap":
+            raise
+        print(f"[suite] seed {seed}: {err}", flush=True)
+        return unposed_row(seed, meta, cfg, str(err), time.perf_counter() - start)
+    sim_s = time.perf_counter() - start
     segmentation: Dict = {}
 
     def score_segmentation(trainer) -> None:  # the selected instances' masks in the test views, before replacement
@@ -281,7 +303,9 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
         "effects": [k for k, v in meta["sim"]["effects"].items() if v],
         "instances": len(meta["instances"]),
         "inputs": cfg.inputs,
+        **({"poses": cfg.poses} if cfg.poses != "exact" else {}),
         **({"sparse_points": inputs_report(data).get("sparse_points")} if cfg.inputs != "exact" else {}),
+        **({"colmap": inputs_report(data).get("colmap")} if cfg.poses == "colmap" else {}),
         "baseline": {k: baseline.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
         "ours": {k: ours.get(k) for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")},
         "gain_masked": _diff(ours.get("psnr_masked"), baseline.get("psnr_masked")),
@@ -304,105 +328,17 @@ def run_scene(seed: int, cfg: BenchSuiteConfig, res: str) -> Dict:
     return row
 
 
-def forget_click_masks(data: Path) -> None:
-    """Removes the masks an earlier run made from the clicks in a folder without masks of its own, so that ours
-    makes them again from its own base model (and the masks stage's time is counted)."""
-    from splatreplace_ns.datamanager.click_masks import MASKS_DIR
-
-    if (data / MASKS_DIR).is_dir() and not (data / MASKS_DIR).is_symlink():
-        import shutil
-
-        shutil.rmtree(data / MASKS_DIR)
-
-
-def train_variant_from_segmentation(data: Path, cfg: BenchSuiteConfig) -> Dict:
-    """Ours with the variant's settings, resumed from the defaults' run of this scene at the end of segmentation;
-    the baseline's metrics and the segmentation's score are that run's (the same segmentation). → the fields of
-    ``train_ours_and_baseline``'s result the suite reads, with ``segmentation`` and the ``stages`` of this run
-    (base, contrastive and segmentation 0; fine-tuning includes loading and evaluating).
-
-    Raises:
-        FileNotFoundError: when the defaults' run or its checkpoint at the end of segmentation is missing.
-    """
-    from splatreplace_ns.tools.bench.template import _run, test_metrics
-    from splatreplace_ns.method.train import make_trainer_config
-
-    if not variant_label(cfg):
-        raise ValueError("--from-segmentation needs a variant (--registration or --overrides)")
-    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
-    default = run_folder(cfg, scene_of(data, cfg.inputs).name, default=True)
-    checkpoints = default / "ours" / "splat-replace" / "run" / "nerfstudio_models"
-    if not (checkpoints / f"step-{B + C - 1:09d}.ckpt").exists():
-        raise FileNotFoundError(
-            f"{default}: no run with the defaults that kept its checkpoint at the end of segmentation (step "
-            f"{B + C - 1}); run `splatreplace bench suite` with the same split, scenes and budget first")
-    previous, baseline = defaults_baseline(data, cfg)
-    config = make_trainer_config(data, run_folder(cfg, scene_of(data, cfg.inputs).name), B, C, F, experiment_name="ours", progress=True,
-                                 resume_from=(checkpoints, B + C - 1))
-    configure_ours(cfg)(config)
-    before = None
-    if cfg.oracle:
-        from splatreplace_ns.tools.bench.oracle import use_ground_truth
-
-        def before(trainer) -> None:
-            use_ground_truth(trainer.pipeline, instances_too=cfg.oracle == "gt_instances")
-
-    torch.set_num_threads(os.cpu_count() or 1)  # ours alone
-    trainer, seconds = _run(config, before)
-    pipeline = trainer.pipeline
-    registration_s = float(pipeline.registration_report.get("time_s", float("nan")))
-    segmentation = {"miou": previous.get("segmentation_miou"), "unavailable": previous.get("segmentation_unavailable")}
-    if cfg.oracle == "gt_instances":  # the defaults' segmentation is not the one fine-tuned here
-        segmentation = {"unavailable": "the instances are the ground truth's (--oracle gt_instances)"}
-    return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
-            "segmentation": {k: v for k, v in segmentation.items() if v is not None},
-            "times": {"ours": seconds, "baseline": previous["time_s"]["baseline"]},
-            "stages": {"base": 0.0, "contrastive": 0.0, "segmentation": 0.0, "registration": registration_s,
-                       "finetune": seconds - registration_s, "setup_and_eval": 0.0}}
-
-
-def defaults_baseline(data: Path, cfg: BenchSuiteConfig) -> Tuple[Dict, Dict]:
-    """The row of the same scene's run with the defaults at the same budget, and its baseline's metrics (with the
-    per-instance PSNR), for a variant that reuses them.
-
-    Raises:
-        FileNotFoundError: when that run has no result.json.
-    """
-    from splatreplace_ns.eval.coverage_scores import baseline_coverage
-
-    default = run_folder(cfg, scene_of(data, cfg.inputs).name, default=True)
-    saved = default / "result.json"
-    if not saved.exists():
-        raise FileNotFoundError(f"{default}: no run with the defaults; run `splatreplace bench suite` with the same "
-                                "split, scenes and budget first")
-    previous = json.loads(saved.read_text())["row"]
-    baseline = dict(previous["baseline"])
-    baseline["psnr_per_instance"] = {k: v["baseline"] for k, v in previous["per_instance"].items()}
-    if previous.get("coverage") and "unavailable" not in previous["coverage"]:  # absent from older results
-        baseline["coverage"] = baseline_coverage(previous["coverage"])  # with "sharp" where it was measured
-    return previous, baseline
-
-
-def train_variant_reusing_baseline(data: Path, cfg: BenchSuiteConfig, clock: "StageClock") -> Dict:
-    """Ours with the variant's settings trained whole (from step 0) in this process, against the baseline of the
-    defaults' run of this scene. → the fields of ``train_ours_and_baseline``'s result the suite reads."""
-    from splatreplace_ns.tools.bench.template import _run, test_metrics
-    from splatreplace_ns.method.train import make_trainer_config
-
-    if not variant_label(cfg):
-        raise ValueError("--reuse-baseline needs a variant (--registration or --overrides)")
-    previous, baseline = defaults_baseline(data, cfg)
-    forget_click_masks(data)  # a variant of an earlier stage makes its own masks, from its own base model
-    config = make_trainer_config(data, run_folder(cfg, scene_of(data, cfg.inputs).name), cfg.base_iterations, cfg.contrastive_iterations,
-                                 cfg.finetune_iterations, experiment_name="ours", progress=True)
-    configure_ours(cfg)(config)
-    trainer, seconds = _run(config, after_step=clock)
-    pipeline = trainer.pipeline
-    times = {"ours": seconds, "baseline": previous["time_s"]["baseline"],
-             "segmentation": float(pipeline.segmentation_report.get("time_s", float("nan"))),
-             "registration": float(pipeline.registration_report.get("time_s", float("nan")))}
-    return {"ours": test_metrics(pipeline), "baseline": baseline, "ours_trainer": trainer, "parallel": False,
-            "times": times}
+def unposed_row(seed: int, meta: Dict, cfg: BenchSuiteConfig, error: str, seconds: float) -> Dict:
+    """The row of a scene COLMAP could not pose (``--poses colmap``): no run, no figure, and why."""
+    empty = {k: None for k in ("psnr", "psnr_masked", "ssim", "ssim_masked")}
+    return {"seed": seed, "scene": meta["sim"]["scene"], "effects": [k for k, v in meta["sim"]["effects"].items() if v],
+            "instances": len(meta["instances"]), "inputs": cfg.inputs, "poses": cfg.poses,
+            "error": error.splitlines()[0][:300], "baseline": dict(empty), "ours": dict(empty), "gain_masked": None,
+            "gain_full": None, "per_instance": {}, "coverage": None, "segmentation_miou": None,
+            "segmentation_unavailable": "COLMAP posed no dataset", "registration": _registration_summary(None, {}),
+            "replaced": False, "time_s": {**{k: 0.0 for k in ("base", "contrastive", "segmentation", "registration",
+                                                               "finetune", "ours", "baseline")}, "total": seconds},
+            "variant": variant_label(cfg) or "defaults"}
 
 
 def _diff(a: Optional[float], b: Optional[float]) -> Optional[float]:
@@ -421,6 +357,7 @@ def summarise(rows: List[Dict]) -> Dict:
               for r in rows for k, v in r["per_instance"].items() if v["gain"] < -1.0]
     return {
         "scenes": len(rows),
+        **({"not_posed": [r["seed"] for r in rows if "error" in r]} if any("error" in r for r in rows) else {}),
         "gain_masked_mean": statistics.fmean(masked) if masked else None,
         "gain_masked_worst": min(masked) if masked else None,
         "share_worse_masked": sum(g < 0 for g in masked) / len(masked) if masked else None,
@@ -443,6 +380,7 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
     from splatreplace_ns.eval.report import versions
 
     seeds = split_seeds(cfg)
+    regime(cfg)  # a regime that does not exist stops here
     res = QUICK["res"] if cfg.quick else cfg.res
     cores = os.cpu_count() or 1
     torch.set_num_threads(max(1, cores if cfg.sequential else cores // 2))
@@ -453,6 +391,7 @@ def run_suite(cfg: BenchSuiteConfig) -> Dict:
                      "overrides": list(cfg.overrides), "from_segmentation": cfg.from_segmentation,
                      **({"reuse_baseline": True} if cfg.reuse_baseline else {}),
                      **({"inputs": cfg.inputs} if cfg.inputs != "exact" else {}),
+                     **({"poses": cfg.poses} if cfg.poses != "exact" else {}),
                      **({"training_seed": cfg.training_seed} if cfg.training_seed is not None else {})}
     if cfg.oracle is not None:
         configuration["oracle"] = cfg.oracle

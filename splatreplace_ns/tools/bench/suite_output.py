@@ -33,7 +33,7 @@ def print_suite(result: Dict) -> None:
                         f"ours {result['parameters']['base_iterations']}+{result['parameters']['contrastive_iterations']}"
                         f"+{result['parameters']['finetune_iterations']} vs 3DGS* "
                         f"{result['parameters']['baseline_iterations']} iterations; inputs: "
-                        f"{result['parameters'].get('inputs', 'exact')})")
+                        f"{result['parameters'].get('inputs', 'exact')}; poses: {result['parameters'].get('poses', 'exact')})")
     columns = ("seed", "scene", "masked PSNR base → ours", "full PSNR base → ours", "gain shared (px %)",
                "gain shared (sharp)", "masked SSIM", "mIoU", "rot. err. ° mean / max", "failed / wrong",
                "s: base / contr. / seg. / reg. / fine")
@@ -57,6 +57,9 @@ def print_suite(result: Dict) -> None:
             " / ".join(f"{t[k]:.0f}" for k in ("base", "contrastive", "segmentation", "registration", "finetune")),
         )
     console.print(table)
+    for r in result["scenes"]:
+        if "error" in r:
+            console.print(f"seed {r['seed']}: not run: {r['error']}")
     s = result["summary"]
     console.print(
         f"masked PSNR gain: mean {_fmt(s['gain_masked_mean'], signed=True)} dB, worst scene "

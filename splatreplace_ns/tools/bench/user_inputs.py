@@ -8,6 +8,8 @@
   masks stay on the test frames alone, as evaluation masks: they only score.
 * ``user+masks``, ``user+depth``, ``user+points``: the user's regime with one input of the exact regime given
   back (the true masks of every frame, the true depth, the dense point cloud), to measure what each costs.
+* ``user+colmap``: the user's regime with COLMAP's camera poses, intrinsics and sparse cloud instead of the true
+  ones (``bench suite --inputs user --poses colmap``, :mod:`splatreplace_ns.tools.bench.colmap_poses`).
 
 The folder ``<scene>_<regime>`` links the scene's images (and its masks, depth or cloud where given) and holds a
 ``transforms.json`` of its own; the scene itself is not changed. Both methods train on the same folder.
@@ -21,8 +23,9 @@ import shutil
 from pathlib import Path
 from typing import Dict, Tuple
 
-INPUTS: Tuple[str, ...] = ("exact", "user", "user+masks", "user+depth", "user+points")
-GIVEN_BACK = {"user": (), "user+masks": ("masks",), "user+depth": ("depth",), "user+points": ("points",)}
+INPUTS: Tuple[str, ...] = ("exact", "user", "user+masks", "user+depth", "user+points", "user+colmap")
+GIVEN_BACK = {"user": (), "user+masks": ("masks",), "user+depth": ("depth",), "user+points": ("points",),
+              "user+colmap": ()}
 SPARSE_PLY = "sparse_points.ply"
 REPORT_NAME = "inputs.json"
 
@@ -104,6 +107,13 @@ def make_regime_folder(scene: Path, inputs: str) -> Path:
     folder.mkdir(parents=True)
     for name in ("images", "masks") + (("depth",) if "depth" in given else ()):
         _link(folder, name, scene / name)
+    if inputs == "user+colmap":
+        from splatreplace_ns.tools.bench.colmap_poses import write_colmap_regime
+
+        colmap = write_colmap_regime(scene, folder)
+        report_path.write_text(json.dumps({**stamp, "given_back": [], "colmap": colmap,
+                                           "sparse_points": {"points": colmap["sparse_points"]}}, indent=2) + "\n")
+        return folder
     shutil.copy2(scene / "clicks.json", folder / "clicks.json")
     sparse = {}
     if "points" in given:
