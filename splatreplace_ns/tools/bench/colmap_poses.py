@@ -193,8 +193,9 @@ def write_colmap_regime(scene: Path, folder: Path, scale: int = PHOTO_SCALE) -> 
     clicks = capture_clicks(scene, by_name)  # clicks on an image COLMAP did not pose move to a posed one
     (folder / "clicks.json").write_text(json.dumps(clicks, indent=2) + "\n")
     (folder / "transforms.json").write_text(json.dumps(transforms, indent=2) + "\n")
+    command = colmap["command"].split(" ", 1)  # the executable by name: its folder is this machine's
     report.update(seconds=time.perf_counter() - start, photos_render_s=render_s, sparse_points=points,
-                  command=colmap["command"])
+                  command=" ".join([Path(command[0]).name] + command[1:]))
     print(f"[colmap] posed {report['posed']} of {report['photos']} training images in {report['seconds']:.0f} s, "
           f"{points} sparse points; after the similarity fit the camera centres are "
           f"{report['centre_error_m']['mean']:.3f} m off on average, the rotations "
