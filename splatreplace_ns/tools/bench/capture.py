@@ -327,7 +327,7 @@ def _train_and_score(cfg: BenchCaptureConfig, data: Path, out: Path, c2w_saved: 
     test views with :func:`score_true_views`; seconds per stage of ours (``bench.suite.StageClock``)."""
     import gc
 
-    from splatreplace_ns.tools.bench.suite import StageClock
+    from splatreplace_ns.tools.bench.stage_clock import StageClock
     from splatreplace_ns.tools.bench.template import train_ours_and_baseline
 
     B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations

@@ -30,8 +30,10 @@ import torch
 
 from splatreplace_ns.tools.bench.output import publish, write_result_json
 from splatreplace_ns.tools.bench.suite_output import WRONG_POSE_DEG, print_suite, write_gain_plot
-from splatreplace_ns.tools.bench.suite_variants import (
-    forget_click_masks, train_variant_from_segmentation, train_variant_reusing_baseline,
+from splatreplace_ns.tools.bench.stage_clock import StageClock
+from splatreplace_ns.tools.bench.suite_variants import (  # noqa: F401  (regime, run_folder: part of this module's API)
+    configure_ours, forget_click_masks, regime, run_folder, train_variant_from_segmentation,
+    train_variant_reusing_baseline, variant_label,
 )
 from splatreplace_ns.tools.bench.user_inputs import inputs_report, make_regime_folder
 from splatreplace_ns.tools.demo import DemoCommand
@@ -135,51 +137,6 @@ def split_seeds(cfg: BenchSuiteConfig) -> List[int]:
     return list(pool[:count])
 
 
-def regime(cfg: BenchSuiteConfig) -> str:
-    """The ``user_inputs`` regime of a configuration: ``--inputs``, or ``user+colmap`` with ``--poses colmap``."""
-    if cfg.poses == "exact":
-        return cfg.inputs
-    if cfg.inputs != "user":
-        raise ValueError(f"--poses colmap goes with --inputs user (COLMAP poses a user's photos), not {cfg.inputs}")
-    return "user+colmap"
-
-
-def variant_label(cfg: BenchSuiteConfig) -> str:
-    """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
-    ``reg-ours+pipeline.gate.enabled=True``."""
-    parts = [] if cfg.registration == "ours" and not cfg.overrides else [f"reg-{cfg.registration}", *cfg.overrides]
-    return "+".join(parts + ([f"oracle-{cfg.oracle}"] if cfg.oracle else []))
-
-
-def run_folder(cfg: BenchSuiteConfig, data_name: str, default: bool = False) -> Path:
-    """The folder of one scene's runs (ours, baseline, result.json) for this configuration, or with
-    ``default=True`` for the defaults at the same budget."""
-    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
-    label = "" if default else variant_label(cfg)
-    safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
-    seed = "" if cfg.training_seed is None else f"_seed{cfg.training_seed}"
-    inputs = "" if regime(cfg) == "exact" else f"_{regime(cfg).replace('+', '-')}"
-    return cfg.out_dir / (f"{data_name}{inputs}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
-
-
-def configure_ours(cfg: BenchSuiteConfig):
-    """``configure(trainer_config)``: ours' registration variant and overrides (nothing for the defaults)."""
-    from splatreplace_ns.tools.bench.overrides import apply_overrides
-    from splatreplace_ns.method.config import splat_replace_trainer_config
-    from splatreplace_ns.poses.variants import registration_variant
-
-    # an unknown variant or override stops here, before anything trains
-    trial = apply_overrides(splat_replace_trainer_config(1, 1, 1), cfg.overrides)
-    registration_variant(cfg.registration, trial.pipeline.registration)
-
-    def configure(trainer_config) -> None:
-        pipeline = trainer_config.pipeline
-        pipeline.registration = registration_variant(cfg.registration, pipeline.registration)
-        apply_overrides(trainer_config, cfg.overrides)
-
-    return configure
-
-
 def scene_name(seed: int, res: str, n_train: int, n_test: int) -> str:
     """Folder name of a generated suite scene, e.g. ``random_7_128x96_48v8``."""
     return f"random_{seed}_{res}_{n_train}v{n_test}"
@@ -193,38 +150,6 @@ def cached_random_scene(seed: int, res: str, n_train: int, n_test: int, root: Pa
     if not is_current_scene(data):
         make_scene("random", data, res=res, seed=seed, n_train=n_train, n_test=n_test)
     return data
-
-
-class StageClock:
-    """``after_step`` callback that notes the wall time after ours' first step, at the end of its base and
-    contrastive stages (the contrastive stage's last step also runs segmentation; registration runs at the first
-    fine-tuning step) and after its last step. ``at_segmentation(trainer)``, when given, runs right after the
-    segmentation, before registration changes anything (the suite scores the segmentation there)."""
-
-    def __init__(self, base: int, contrastive: int, finetune: int, at_segmentation=None) -> None:
-        self.marks = {0: "first", base - 1: "base_end", base + contrastive - 1: "contrastive_end",
-                      base + contrastive + finetune - 1: "last"}
-        self.times: Dict[str, float] = {}
-        self.at_segmentation = at_segmentation
-
-    def __call__(self, trainer, step: int) -> None:
-        if step in self.marks:
-            if self.marks[step] == "contrastive_end" and self.at_segmentation is not None:
-                start = time.perf_counter()
-                self.at_segmentation(trainer)
-                self.times["scoring"] = time.perf_counter() - start  # not the method's time: taken out below
-            self.times[self.marks[step]] = time.perf_counter() - self.times.get("scoring", 0.0)
-
-    def stages(self, total: float, segmentation: float, registration: float) -> Dict[str, float]:
-        """Seconds per stage of ours; ``setup_and_eval`` is the rest of the run's ``total`` (loading the data,
-        evaluating the test views)."""
-        t = {k: self.times.get(k, float("nan")) for k in ("first", "base_end", "contrastive_end", "last")}
-        stages = {"base": t["base_end"] - t["first"],
-                  "contrastive": t["contrastive_end"] - t["base_end"] - segmentation,
-                  "segmentation": segmentation, "registration": registration,
-                  "finetune": t["last"] - t["contrastive_end"] - registration}
-        stages["setup_and_eval"] = total - (t["last"] - t["first"]) - self.times.get("scoring", 0.0)
-        return stages
 
 
 def _registration_summary(report: Optional[Dict], model_registration: Dict) -> Dict:

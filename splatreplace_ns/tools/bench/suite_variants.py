@@ -1,19 +1,62 @@
-"""``bench suite``'s variants that reuse the defaults' run of a scene: resumed from its segmentation
-(``--from-segmentation``), or trained whole against its baseline (``--reuse-baseline``)."""
+"""``bench suite``'s configurations: the regime, the variant's label and run folder, ours' settings; and the variants
+that reuse the defaults' run of a scene: resumed from its segmentation (``--from-segmentation``), or trained whole
+against its baseline (``--reuse-baseline``)."""
 
 from __future__ import annotations
 
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, Tuple
+from typing import Dict, Tuple
 
 import torch
 
 from splatreplace_ns.tools.bench.user_inputs import scene_of
 
-if TYPE_CHECKING:
-    from splatreplace_ns.tools.bench.suite import BenchSuiteConfig, StageClock
+
+def regime(cfg: "BenchSuiteConfig") -> str:
+    """The ``user_inputs`` regime of a configuration: ``--inputs``, or ``user+colmap`` with ``--poses colmap``."""
+    if cfg.poses == "exact":
+        return cfg.inputs
+    if cfg.inputs != "user":
+        raise ValueError(f"--poses colmap goes with --inputs user (COLMAP poses a user's photos), not {cfg.inputs}")
+    return "user+colmap"
+
+
+def variant_label(cfg: "BenchSuiteConfig") -> str:
+    """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
+    ``reg-ours+pipeline.gate.enabled=True``."""
+    parts = [] if cfg.registration == "ours" and not cfg.overrides else [f"reg-{cfg.registration}", *cfg.overrides]
+    return "+".join(parts + ([f"oracle-{cfg.oracle}"] if cfg.oracle else []))
+
+
+def run_folder(cfg: "BenchSuiteConfig", data_name: str, default: bool = False) -> Path:
+    """The folder of one scene's runs (ours, baseline, result.json) for this configuration, or with
+    ``default=True`` for the defaults at the same budget."""
+    B, C, F = cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations
+    label = "" if default else variant_label(cfg)
+    safe = "".join(c if c.isalnum() or c in "-_.=+" else "_" for c in label)
+    seed = "" if cfg.training_seed is None else f"_seed{cfg.training_seed}"
+    inputs = "" if regime(cfg) == "exact" else f"_{regime(cfg).replace('+', '-')}"
+    return cfg.out_dir / (f"{data_name}{inputs}_{B}-{C}-{F}" + (f"_{safe}" if safe else "") + seed)
+
+
+def configure_ours(cfg: "BenchSuiteConfig"):
+    """``configure(trainer_config)``: ours' registration variant and overrides (nothing for the defaults)."""
+    from splatreplace_ns.tools.bench.overrides import apply_overrides
+    from splatreplace_ns.method.config import splat_replace_trainer_config
+    from splatreplace_ns.poses.variants import registration_variant
+
+    # an unknown variant or override stops here, before anything trains
+    trial = apply_overrides(splat_replace_trainer_config(1, 1, 1), cfg.overrides)
+    registration_variant(cfg.registration, trial.pipeline.registration)
+
+    def configure(trainer_config) -> None:
+        pipeline = trainer_config.pipeline
+        pipeline.registration = registration_variant(cfg.registration, pipeline.registration)
+        apply_overrides(trainer_config, cfg.overrides)
+
+    return configure
 
 
 def forget_click_masks(data: Path) -> None:
@@ -36,7 +79,6 @@ def train_variant_from_segmentation(data: Path, cfg: "BenchSuiteConfig") -> Dict
     Raises:
         FileNotFoundError: when the defaults' run or its checkpoint at the end of segmentation is missing.
     """
-    from splatreplace_ns.tools.bench.suite import configure_ours, regime, run_folder, variant_label
     from splatreplace_ns.tools.bench.template import _run, test_metrics
     from splatreplace_ns.method.train import make_trainer_config
 
@@ -81,7 +123,6 @@ def defaults_baseline(data: Path, cfg: "BenchSuiteConfig") -> Tuple[Dict, Dict]:
     Raises:
         FileNotFoundError: when that run has no result.json.
     """
-    from splatreplace_ns.tools.bench.suite import regime, run_folder
     from splatreplace_ns.eval.coverage_scores import baseline_coverage
 
     default = run_folder(cfg, scene_of(data, regime(cfg)).name, default=True)
@@ -100,7 +141,6 @@ def defaults_baseline(data: Path, cfg: "BenchSuiteConfig") -> Tuple[Dict, Dict]:
 def train_variant_reusing_baseline(data: Path, cfg: "BenchSuiteConfig", clock: "StageClock") -> Dict:
     """Ours with the variant's settings trained whole (from step 0) in this process, against the baseline of the
     defaults' run of this scene. → the fields of ``train_ours_and_baseline``'s result the suite reads."""
-    from splatreplace_ns.tools.bench.suite import configure_ours, regime, run_folder, variant_label
     from splatreplace_ns.tools.bench.template import _run, test_metrics
     from splatreplace_ns.method.train import make_trainer_config
 
