@@ -26,7 +26,7 @@ import json
 import shutil
 import time
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, Tuple
 
 import numpy as np
 
@@ -188,7 +188,7 @@ def write_colmap_regime(scene: Path, folder: Path, scale: int = PHOTO_SCALE) -> 
     if transforms.get("ply_file_path"):
         ply = processed / transforms["ply_file_path"]
         shutil.copy2(ply, folder / transforms["ply_file_path"])
-        points = _ply_vertices(ply)
+        points = _point_count(ply)
     by_name = {Path(p).name: p for p in transforms["train_filenames"]}
     clicks = capture_clicks(scene, by_name)  # clicks on an image COLMAP did not pose move to a posed one
     (folder / "clicks.json").write_text(json.dumps(clicks, indent=2) + "\n")
@@ -203,13 +203,8 @@ def write_colmap_regime(scene: Path, folder: Path, scale: int = PHOTO_SCALE) -> 
     return report
 
 
-def _ply_vertices(path: Path) -> int:
-    """The vertex count in a PLY file's header."""
-    with open(path, "rb") as handle:
-        for raw in handle:
-            line = raw.decode("ascii", errors="replace").strip()
-            if line.startswith("element vertex"):
-                return int(line.split()[-1])
-            if line == "end_header":
-                break
-    return 0
+def _point_count(path: Path) -> int:
+    """Points in a PLY point cloud (open3d reads it)."""
+    import open3d as o3d
+
+    return len(o3d.io.read_point_cloud(str(path)).points)
