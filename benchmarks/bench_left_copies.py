@@ -47,10 +47,12 @@ def copy_status(row: Dict) -> Dict[str, str]:
     entries = (row.get("registration") or {}).get("per_instance") or []
     for entry in entries:
         status[str(entry["gt_id"])] = "replaced" if entry.get("success") else "left"
-    for entry in entries:
+    for entry in entries:  # a template copy is not registered to itself: it is named by its class's entries
         template = str(entry.get("template_gt_id"))
-        if entry.get("success") or status.get(template) is None:
-            status[template] = "template" if entry.get("success") else status.get(template, "left")
+        if entry.get("success"):
+            status[template] = "template"
+        else:
+            status.setdefault(template, "left")
     return status
 
 
