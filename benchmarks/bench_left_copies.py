@@ -26,6 +26,8 @@ from typing import Dict, List, Tuple
 
 import tyro
 
+from splatreplace_ns.tools.bench.output import write_result_json
+
 LOSS_DB = 0.5  # a copy "loses" below -0.5 dB, the bound asked of a copy left as it was
 
 
@@ -153,9 +155,7 @@ def main(cfg: BenchLeftCopiesConfig) -> Dict:
     for label, s in summary.items():
         print(f"{label}: " + json.dumps(s, default=lambda x: round(x, 3)))
     out = {"benchmark": "left_copies", "loss_db": LOSS_DB, "scenes": scenes, "summary": summary}
-    cfg.out.parent.mkdir(parents=True, exist_ok=True)
-    cfg.out.write_text(json.dumps(out, indent=1))
-    print(f"wrote {cfg.out}")
+    write_result_json(out, cfg.out)
     return out
 
 
