@@ -33,6 +33,7 @@ VARIANTS: Dict[str, Dict[str, str]] = {
     "per_view": {"image_score": "per_view"},
     "pair": {"image_margin_pixels": "pair"},
     "pair+per_view": {"image_margin_pixels": "pair", "image_score": "per_view"},
+    "no_upright": {"upright": False},  # the chosen candidate kept as rigid ICP placed it, not polished
 }
 """Settings of ``RegistrationConfig`` each variant changes."""
 
