@@ -32,7 +32,7 @@ from splatreplace_ns.tools.bench.register_scene import load_pipeline
 from splatreplace_ns.tools.bench.suite import DEV_SEEDS
 from splatreplace_ns.tools.bench.suite_output import WRONG_POSE_DEG
 from splatreplace_ns.poses.config import RegistrationConfig
-from splatreplace_ns.poses.refine import choose_candidate
+from splatreplace_ns.poses.decision import choose_candidate
 
 SEGMENTATION_STEP = 1999  # end of the contrastive stage with the demo's budget (1500 + 500)
 CANDIDATE_RIGHT_DEG = 10.0  # a candidate before the upright polish, which brings a few degrees
@@ -96,10 +96,11 @@ def record_candidates(run: Path, views: Tuple[int, ...] = ()) -> Dict:
 
 def explain_candidates(pipeline, view_counts: Tuple[int, ...]) -> List[Dict[int, Tuple[float, List[float]]]]:
     """Every registered instance's candidate poses scored against its training images, as the method's pose
-    choice scores them (``splatreplace_ns.poses.gate.choose_pose``), once per number of views in
+    choice scores them (``splatreplace_ns.poses.decision.choose_pose``), once per number of views in
     ``view_counts`` → per count {instance: (PSNR by its own Gaussians, [PSNR with the template placed under each
     candidate])}; instances seen in no training view are left out. The scene is rendered once for all counts."""
-    from splatreplace_ns.poses.gate import choose_pose, instance_id_maps
+    from splatreplace_ns.poses.decision import choose_pose
+    from splatreplace_ns.poses.evidence import instance_id_maps
 
     cfg = pipeline.config.registration
     pipeline.model.eval()
@@ -161,7 +162,7 @@ def tabulate_image_choice(instances: List[Dict], margins, rival_deg: float, view
     candidate is within CANDIDATE_RIGHT_DEG of the truth. An instance seen in no training view keeps the
     thresholds' decision (the defaults), as in the method. ``views``: use the scores of that many views
     (``image_psnr_by_views``) instead of the method's."""
-    from splatreplace_ns.poses.gate import pick_with_margin
+    from splatreplace_ns.poses.decision import pick_with_margin
 
     rows = []
     for margin in margins:

@@ -1,6 +1,6 @@
 """A class with fewer registered copies than ``min_class_copies`` is left as it was: nothing to share."""
 
-from splatreplace_ns.method.registration_stage import leave_lone_copies
+from splatreplace_ns.poses.decision import leave_lone_copies
 from splatreplace_ns.poses.config import RegistrationConfig
 
 

@@ -9,9 +9,9 @@ import math
 import pytest
 import torch
 
-from splatreplace_ns.poses.gate import (
-    choose_pose, instance_id_maps, mean_view_psnr, pick_with_margin, pooled_psnr, yaw_rotation,
-)
+from splatreplace_ns.poses.decision import choose_pose, pick_with_margin
+from splatreplace_ns.poses.evidence import instance_id_maps, mean_view_psnr, pooled_psnr
+from splatreplace_ns.poses.gate import yaw_rotation
 from splatreplace_ns.poses.variants import registration_variant
 from splatreplace_ns.poses.config import RegistrationConfig
 

@@ -124,7 +124,7 @@ def test_register_instances_recovers_ground_truth(tiny):
 
 
 def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
-    from splatreplace_ns.poses.refine import _upright_polish
+    from splatreplace_ns.poses.refine import upright_polish
 
     g = tiny["gaussians"]
     free = register_instance(g[1], g[2], RegistrationConfig(**FAST, upright=False))
@@ -132,7 +132,7 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
     src, tpl = g[1].centres(), g[2].centres()
     radius = float(np.linalg.norm(tpl - tpl.mean(0), axis=1).max())
     cfg = RegistrationConfig(**FAST)
-    polished, done = _upright_polish(src, tpl, free.transform, radius, cfg)
+    polished, done = upright_polish(src, tpl, free.transform, radius, cfg)
     assert done == " (upright)" and np.allclose(polished[:3, :3] @ [0, 0, 1], [0, 0, 1], atol=1e-9)
     rot_err, t_err = pose_errors(polished, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])
     assert rot_err < 1.0 and t_err < 0.01
@@ -143,17 +143,17 @@ def test_upright_polish_only_when_asked_and_only_for_near_upright_poses(tiny):
     lean[:3, 3] = centre - lean[:3, :3] @ centre
     leaning = lean @ free.transform
     assert pose_errors(leaning, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])[0] > 7.0
-    straightened, done = _upright_polish(src, tpl, leaning, radius, cfg)
+    straightened, done = upright_polish(src, tpl, leaning, radius, cfg)
     assert done.startswith(" (upright")
     assert pose_errors(straightened, tiny["poses"][1], tiny["poses"][2], tiny["symmetry"][1], tiny["classes"][1])[0] < 1.0
     # a pose tilted beyond upright_max_tilt_deg (a copy lying on its side) is left alone and the log says so,
     # as is any pose when upright is off
     tilted = free.transform.copy()
     tilted[:3, :3] = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float) @ tilted[:3, :3]  # 90° about x
-    kept, note = _upright_polish(src, tpl, tilted, radius, cfg)
+    kept, note = upright_polish(src, tpl, tilted, radius, cfg)
     assert kept is tilted and note.startswith(" (tilted 9") and "left as ICP placed it" in note
     off = replace(cfg, upright=False)
-    assert _upright_polish(src, tpl, free.transform, radius, off) == (free.transform, "")
+    assert upright_polish(src, tpl, free.transform, radius, off) == (free.transform, "")
 
 
 def test_refine_from_a_perturbed_true_pose_comes_back(tiny):
@@ -278,7 +278,7 @@ def test_faint_off_surface_gaussians_do_not_pull_icp(tiny):
 
 
 def test_multistart_poses_turn_about_up_and_match_centroids():
-    from splatreplace_ns.poses.refine import multistart_poses
+    from splatreplace_ns.poses.candidates import multistart_poses
 
     rng = np.random.default_rng(1)
     src, tgt = rng.normal(size=(50, 3)), rng.normal(size=(40, 3)) + 5.0
@@ -313,7 +313,7 @@ def test_choose_candidate_shape_first_then_colour():
     """Order of the candidate choice: acceptable, shape (fitness within the ratio of the best), colour. A wrong
     pose of a partly seen copy that wins on colour but fits clearly worse (fitness 0.535 against 0.680) loses; one
     that fits about as well does not."""
-    from splatreplace_ns.poses.refine import choose_candidate
+    from splatreplace_ns.poses.decision import choose_candidate
 
     cfg = RegistrationConfig()
     ties = [(0, 0, -k) for k in range(3)]

@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from splatreplace_ns.poses.gate import (
-    ReplacementGateConfig, colour_fitted, gate_registrations, judge, psnr, yaw_rotation,
-)
+from splatreplace_ns.poses.evidence import colour_fitted, psnr
+from splatreplace_ns.poses.gate import ReplacementGateConfig, gate_registrations, judge, yaw_rotation
 from splatreplace_ns.poses.virtual_cameras import intrinsics
 from splatreplace_ns.render.cameras import look_at
 from splatreplace_ns.render import rasterize

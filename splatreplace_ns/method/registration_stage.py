@@ -2,7 +2,8 @@
 
 In: the selected instances' Gaussians. Out: ``model.registration`` (per instance: template, pose, accepted or why
 not) and ``registration_report``. Registration is ``poses.register``; the choice of each pose against the training
-images and the optional check before replacement are ``poses.gate``.
+images is ``poses.candidates`` → ``poses.evidence`` → ``poses.decision``; the optional check before replacement is
+``poses.gate``.
 """
 
 from __future__ import annotations
@@ -15,33 +16,13 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import track
 
-from splatreplace_ns.poses.gate import choose_pose, gate_registrations, instance_id_maps
+from splatreplace_ns.poses.decision import choose_pose, leave_lone_copies, polish_explains_as_well
+from splatreplace_ns.poses.evidence import instance_id_maps
+from splatreplace_ns.poses.gate import gate_registrations
 from splatreplace_ns.poses.refine import polish_chosen
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.instance import InstanceGaussians
 from splatreplace_ns.poses.register import register_instances, with_floor_up_axis
-
-
-def leave_lone_copies(registration: Dict[int, Dict], classes: Dict[int, str], min_copies: int) -> List[int]:
-    """Marks as not registered every instance of a class with fewer than ``min_copies`` registered copies (its
-    template copy included): with no other copy to borrow from, replacing it can only lose. → those instances.
-
-    Args:
-        registration: {instance id: {"success", "message", ...}}, changed in place.
-        classes: {instance id: class name}.
-    """
-    registered: Dict[str, List[int]] = {}
-    for iid, entry in registration.items():
-        if entry["success"]:
-            registered.setdefault(classes[int(iid)], []).append(int(iid))
-    alone = sorted(i for ids in registered.values() if len(ids) < min_copies for i in ids)
-    for iid in alone:
-        entry = registration[iid]
-        entry["success"] = False
-        entry["message"] = (f"instance {iid}: not replaced: {len(registered[classes[iid]])} registered cop"
-                            f"{'y' if len(registered[classes[iid]]) == 1 else 'ies'} of '{classes[iid]}' (fewer than "
-                            f"{min_copies}), nothing to share")
-    return alone
 
 
 class RegistrationStage:
@@ -110,7 +91,7 @@ class RegistrationStage:
     @torch.no_grad()
     def choose_poses_by_images(self, instances: Dict[int, InstanceGaussians], config: RegistrationConfig) -> float:
         """Chooses each registered instance's pose among its candidates by how well the template placed under it
-        explains the instance's training pixels (``splatreplace_ns.poses.gate.choose_pose``), then polishes it
+        explains the instance's training pixels (``splatreplace_ns.poses.decision.choose_pose``), then polishes it
         as registration polishes its own choice; an ambiguous choice leaves the instance as it was. An instance seen
         in no training view keeps registration's decision. Returns the seconds it took."""
         start = time.perf_counter()
@@ -136,12 +117,11 @@ class RegistrationStage:
             chosen = entry["candidates"][choice.chosen]
             T, fitness, note = polish_chosen(instances[int(iid)], instances[anchor], np.asarray(chosen["transform"]),
                                              config)
-            if note and not np.allclose(T, chosen["transform"]):  # the polish is kept where the images agree
-                check = choose_pose(scene, labels, int(iid), anchor, [chosen["transform"], T], images, render, id_maps,
-                                    rgb_before, 0.0, 180.0, config.image_views, per_view=config.image_score == "per_view")
-                if check.chosen == 0:
-                    T, fitness = np.asarray(chosen["transform"]), chosen["fitness"]
-                    note = " (the upright polish explains the training pixels worse: not kept)"
+            if note and not np.allclose(T, chosen["transform"]) and not polish_explains_as_well(
+                    scene, labels, int(iid), anchor, chosen["transform"], T, images, render, id_maps, rgb_before,
+                    config.image_views, per_view=config.image_score == "per_view"):
+                T, fitness = np.asarray(chosen["transform"]), chosen["fitness"]
+                note = " (the upright polish explains the training pixels worse: not kept)"
             entry["proposed_transform"] = np.asarray(T).tolist()
             entry["success"] = bool(choice.accepted)
             entry["transform"] = np.asarray(T if choice.accepted else np.eye(4)).tolist()
@@ -153,7 +133,7 @@ class RegistrationStage:
         return time.perf_counter() - start
 
     def pose_check_inputs(self):
-        """What a pose is checked against the training images with (``splatreplace_ns.poses.gate``): the scene
+        """What a pose is judged against the training images with (``splatreplace_ns.poses.evidence``): the scene
         as carving leaves it, whichever instances are replaced → (Gaussians with ``GAUSSIAN_KEYS``, [N] instance
         labels, training images, render function ``(view, Gaussians, extra) → (rgb, extra)``)."""
         model = self.model

@@ -1,6 +1,7 @@
 """Poses (paper §4.2). In: each instance's Gaussians (and the training views, to choose among candidates). Out: per
-instance a pose onto its class template, accepted, ambiguous or refused, with the reason: virtual views, 2D matching,
-lifting, PnP, ICP, multi-start turns, the choice against the training images."""
+instance a pose onto its class template, accepted, ambiguous or refused, with the reason. One path per pose:
+``candidates`` (virtual views, 2D matching, lifting, PnP, multi-start turns, each refined by ICP) → ``evidence``
+(shape and colour on the Gaussians, the training images) → ``decision`` (which candidate; accepted or not)."""
 
 from splatreplace_ns.poses.errors import geodesic_deg, rotation_error_deg, translation_error_rel
 from splatreplace_ns.poses.icp import fpfh_ransac, refine_icp

@@ -83,7 +83,7 @@ class RegistrationConfig:
         seed: RANSAC seed.
         image_choice: with select="photometric" and the training images at hand (the method's pipeline), every
             refined candidate is rendered into the instance's training views with the template in its place and
-            the best-explaining one is chosen (``splatreplace_ns.poses.gate.choose_pose``); that choice
+            the best-explaining one is chosen (``splatreplace_ns.poses.decision.choose_pose``); that choice
             replaces the one above and the acceptance thresholds (``min_fitness``, ``min_photometric_fitness``).
         image_margin_db: the chosen candidate must explain the training pixels this much better (PSNR, dB) than
             the best rival turned more than ``image_rival_deg`` from it; otherwise the pose is ambiguous and the

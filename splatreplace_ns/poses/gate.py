@@ -1,10 +1,4 @@
-"""Poses judged against the training images: chosen among registration's candidates, and checked before replacement.
-
-:func:`choose_pose` (on by default, ``RegistrationConfig.image_choice``) renders the class template under each
-candidate pose of an instance, with the rest of the scene, into the training views that show the instance most,
-and keeps the candidate that explains the instance's pixels best; one that no rival turned far from it trails by a
-margin is ambiguous and the instance is left as it was. :func:`gate_registrations` (off by default) is the older
-check of one registered pose against its turns, described below.
+"""The check of a registered pose before replacement (``--pipeline.gate.enabled``, off by default).
 
 Registration scores a pose by how well Gaussians overlap (inliers, ICP fitness); nothing in it looks at what
 the capture saw. Here each registered instance ``i`` is checked by analysis by synthesis: the class's template
@@ -37,15 +31,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from splatreplace_ns.instances.masks2d import labels_from_weights, one_hot_labels
-from splatreplace_ns.poses.errors import geodesic_deg
-from splatreplace_ns.render.transform import transform_gaussians
-
-GAUSSIAN_KEYS = ("means", "quats", "log_scales", "logit_opacities", "sh")
-
-RenderFn = Callable[[int, Dict[str, Tensor], Tensor], Tuple[Tensor, Tensor]]
-"""(training view index, Gaussians with GAUSSIAN_KEYS, extra features [N, D]) → rgb [H, W, 3] in [0, 1] with
-the scene's background, extra features rendered [H, W, D]."""
+from splatreplace_ns.poses.evidence import RenderFn, explain_scores, instance_id_maps, instance_views, subset
 
 
 @dataclass
@@ -103,34 +89,6 @@ class GateScore:
         return asdict(self)
 
 
-def colour_fitted(pred: Tensor, target: Tensor, max_gain: float = 2.0) -> Tensor:
-    """Per-channel gain fitted from ``pred`` to ``target`` (least squares, clamped to [1/max_gain, max_gain]).
-
-    A gain models a copy lit brighter or dimmer, or by a coloured light; no bias and a bounded gain, so that the
-    fit cannot turn a prediction into the pixels' mean colour (which would explain a small, flat footprint
-    whatever the pose).
-
-    Args:
-        pred, target: [P, 3] colours.
-    Returns:
-        [P, 3] ``gain * pred`` clamped to [0, 1].
-    """
-    if pred.shape[0] == 0:
-        return pred
-    gain = (pred * target).sum(0) / pred.pow(2).sum(0).clamp_min(1e-8)
-    return (gain.clamp(1.0 / max_gain, max_gain) * pred).clamp(0.0, 1.0)
-
-
-PSNR_CAP_DB = 50.0
-"""Scores are capped here: beyond it two renders are equal for 8-bit images, and ``inf`` would refuse a perfect pose."""
-
-
-def psnr(pred: Tensor, target: Tensor) -> float:
-    """PSNR (dB, peak 1) over [P, 3] pixels, at most :data:`PSNR_CAP_DB`; NaN pixels count as wrong."""
-    mse = float(torch.nan_to_num((pred.float() - target.float()).pow(2), nan=1.0).mean())
-    return PSNR_CAP_DB if mse <= 10.0 ** (-PSNR_CAP_DB / 10.0) else -10.0 * math.log10(mse)
-
-
 def yaw_rotation(axis: Tensor, angle: float, centre: Tensor) -> Tensor:
     """[4, 4] rotation by ``angle`` (radians, right-handed) about the line through ``centre`` [3] along ``axis`` [3]."""
     x, y, z = (axis / axis.norm().clamp_min(1e-12)).tolist()
@@ -185,233 +143,6 @@ def judge(psnr_own: Optional[float], psnr_pose: Optional[float], psnr_best_turn:
     return True, "the registered pose explains its training pixels"
 
 
-def _subset(scene: Mapping[str, Tensor], keep: Tensor) -> Dict[str, Tensor]:
-    return {k: scene[k][keep] for k in GAUSSIAN_KEYS}
-
-
-def _placed(scene: Mapping[str, Tensor], T: Tensor) -> Dict[str, Tensor]:
-    """Gaussians moved by the rigid [4, 4] ``T`` (world → world)."""
-    means, quats, sh = transform_gaussians(T.to(scene["means"]), scene["means"], scene["quats"], scene["sh"])
-    return {"means": means, "quats": quats, "log_scales": scene["log_scales"],
-            "logit_opacities": scene["logit_opacities"], "sh": sh}
-
-
-def _cat(a: Mapping[str, Tensor], b: Mapping[str, Tensor]) -> Dict[str, Tensor]:
-    return {k: torch.cat((a[k], b[k])) for k in GAUSSIAN_KEYS}
-
-
-def instance_id_maps(scene: Mapping[str, Tensor], labels: Tensor, views: Sequence[int],
-                     render: RenderFn) -> Tuple[Dict[int, Tensor], Dict[int, Tensor]]:
-    """One render per training view of the scene as it is: its colours and which instance each pixel shows.
-
-    Returns:
-        ({view: rgb [H, W, 3]}, {view: instance id [H, W] long, 0 = background or weight < 0.5}).
-    """
-    ids = sorted(set(labels.unique().tolist()) - {0})
-    table = torch.tensor([0] + ids, dtype=torch.long, device=labels.device)
-    one_hot = one_hot_labels(torch.searchsorted(table, labels), len(ids)).to(scene["means"].dtype)
-    rgbs, id_maps = {}, {}
-    for v in views:
-        rgb, weights = render(v, dict(scene), one_hot)
-        dense = labels_from_weights(weights, 0.5)
-        id_maps[v] = table.to(dense.device)[dense]
-        rgbs[v] = rgb
-    return rgbs, id_maps
-
-
-def instance_views(id_maps: Mapping[int, Tensor], instance: int, max_views: int, min_pixels: int) -> List[int]:
-    """The (at most ``max_views``) views where ``instance`` covers the most pixels, at least ``min_pixels``."""
-    counts = {v: int((m == instance).sum()) for v, m in id_maps.items()}
-    return [v for v in sorted(counts, key=counts.get, reverse=True) if counts[v] >= min_pixels][:max_views]
-
-
-def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, poses: Sequence[Tensor],
-                   images: Sequence[Tensor], render: RenderFn, views: Sequence[int], id_maps: Mapping[int, Tensor],
-                   rgb_before: Mapping[int, Tensor], per_view: bool = False) -> Tuple[float, List[float], int]:
-    """How well instance ``instance``'s training pixels are explained by its own Gaussians and by the template
-    instance ``anchor``'s Gaussians placed under each pose, with the rest of the scene around them.
-
-    The compared pixels are the same for every pose: those the instance covers in the scene as it is, or any
-    placed copy covers (weight ≥ 0.5), in ``views``. PSNR after a per-channel gain (:func:`colour_fitted`),
-    over all compared pixels (``per_view=False``), or per view and averaged over the views (``per_view=True``:
-    each view is one piece of evidence, so one view rendered badly under every pose does not outweigh the
-    others, see :func:`mean_view_psnr`).
-
-    Args:
-        scene: Gaussians (N) with GAUSSIAN_KEYS; labels: [N] long instance ids.
-        poses: each [4, 4], template → instance (world).
-        images: training images [H, W, 3] (float in [0, 1] or uint8); views: the view indices to compare.
-        id_maps, rgb_before: from :func:`instance_id_maps` (which instance each pixel shows, the scene's render).
-    Returns:
-        (PSNR by the own Gaussians, [PSNR under each pose], number of compared pixels).
-    """
-    rest = _subset(scene, labels != instance)
-    template = _subset(scene, labels == anchor)
-    candidates = [_placed(template, p) for p in poses]
-    marker = torch.cat((torch.zeros(len(rest["means"]), 1), torch.ones(len(template["means"]), 1)))
-    marker = marker.to(scene["means"])
-    own_px: List[Tensor] = []
-    target_px: List[Tensor] = []
-    cand_px: List[List[Tensor]] = [[] for _ in candidates]
-    for v in views:
-        renders = [render(v, _cat(rest, c), marker) for c in candidates]
-        footprint = id_maps[v] == instance
-        for _, weight in renders:
-            footprint = footprint | (weight[..., 0] >= 0.5)
-        target = images[v][..., :3]  # an RGBA capture's alpha is not compared
-        target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
-        target_px.append(target[footprint])
-        own_px.append(rgb_before[v][footprint].float())
-        for k, (rgb, _) in enumerate(renders):
-            cand_px[k].append(rgb[footprint].float())
-    target_all = torch.cat(target_px)
-    score = mean_view_psnr if per_view else pooled_psnr
-    own = score(own_px, target_px)
-    return own, [score(px, target_px) for px in cand_px], int(target_all.shape[0])
-
-
-def pooled_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
-    """PSNR over the pixels of every view together, after one per-channel gain.
-
-    Args:
-        pred, target: per view, [P_v, 3] colours.
-    """
-    pred_all, target_all = torch.cat(list(pred)), torch.cat(list(target))
-    return psnr(colour_fitted(pred_all, target_all), target_all)
-
-
-def mean_view_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
-    """Mean over views of each view's PSNR, each after its own per-channel gain (a view that no pose explains
-    then weighs as one view, in its error and in its gain).
-
-    Args:
-        pred, target: per view, [P_v, 3] colours (views without pixels are skipped).
-    """
-    scores = [psnr(colour_fitted(p, t), t) for p, t in zip(pred, target) if p.shape[0] > 0]
-    if not scores:
-        raise ValueError("mean_view_psnr: no view has pixels to compare")
-    return sum(scores) / len(scores)
-
-
-@dataclass
-class PoseChoice:
-    """Which candidate pose explains instance ``instance_id``'s training pixels best (:func:`choose_pose`)."""
-
-    instance_id: int
-    template_id: int
-    chosen: Optional[int]
-    """Index of the chosen candidate (None: not seen in any training view, nothing was compared)."""
-    rival: Optional[int]
-    """Index of the best candidate turned more than the rival angle from the chosen one (None: no such one)."""
-    psnr_own: Optional[float]
-    """dB, by the instance's own Gaussians (the scene as it is), for reference."""
-    scores: List[Optional[float]]
-    """dB, with the template placed under each candidate (after the per-channel gain)."""
-    views: int
-    pixels: int
-    accepted: bool
-    reason: str
-    pair_scores: Optional[Tuple[float, float]] = None
-    """dB of the chosen candidate and of its rival compared on their own pixels only (the instance's and the two
-    placed copies'), when the margin was measured there (``margin_pixels="pair"``)."""
-
-    @property
-    def margin_db(self) -> Optional[float]:
-        if self.chosen is None:
-            return None
-        if self.rival is None:
-            return math.inf
-        if self.pair_scores is not None:
-            return self.pair_scores[0] - self.pair_scores[1]
-        return self.scores[self.chosen] - self.scores[self.rival]
-
-    def as_dict(self) -> Dict:
-        out = asdict(self)
-        margin = self.margin_db
-        out["margin_db"] = None if margin is None or math.isinf(margin) else margin
-        return out
-
-
-def _turn_deg(a: Tensor, b: Tensor) -> float:
-    """Angle (degrees) between the rotation parts of two [4, 4] transforms."""
-    return geodesic_deg(a[:3, :3].double().numpy(), b[:3, :3].double().numpy())
-
-
-def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], margin_db: float,
-                     rival_deg: float) -> Tuple[int, Optional[int], bool]:
-    """The best-scoring candidate, its best rival (turned more than ``rival_deg`` from it) and whether it wins
-    by at least ``margin_db``.
-
-    Args:
-        scores: (C,) PSNR per candidate (higher explains better); transforms: (C,) [4, 4] poses.
-    Returns:
-        (chosen index, rival index or None, accepted).
-    """
-    chosen = max(range(len(scores)), key=lambda k: scores[k])
-    rivals = [k for k in range(len(scores)) if _turn_deg(transforms[k], transforms[chosen]) > rival_deg]
-    rival = max(rivals, key=lambda k: scores[k], default=None)
-    accepted = rival is None or scores[chosen] - scores[rival] >= margin_db
-    return chosen, rival, accepted
-
-
-def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int,
-                candidates: Sequence[Tensor], images: Sequence[Tensor], render: RenderFn,
-                id_maps: Mapping[int, Tensor], rgb_before: Mapping[int, Tensor], margin_db: float,
-                rival_deg: float, max_views: int, min_pixels: int = 16, per_view: bool = False,
-                margin_pixels: str = "all") -> PoseChoice:
-    """Analysis by synthesis: each candidate pose of ``instance`` is judged by rendering the template instance
-    ``anchor`` in its place, with the rest of the scene, into the training views that show the instance most, and
-    comparing with the training images (:func:`explain_scores`). The best-explaining candidate is chosen; it is
-    accepted only when no rival turned more than ``rival_deg`` from it explains the pixels within ``margin_db``
-    (otherwise the pose is ambiguous and the instance stays as it was).
-
-    Args:
-        candidates: (C,) [4, 4] transforms, template ≈ T · instance (world), as registration stores them.
-        per_view: score by the mean of the views' PSNR instead of the PSNR over all views' pixels.
-        margin_pixels: "all": the margin is measured on the pixels every candidate is ranked on (the instance's
-            and any placed copy's); "pair": on the pixels of the instance, the chosen copy and its rival only, so
-            that pixels neither of the two touches (those of far-off candidates) do not shrink the margin.
-        id_maps, rgb_before: from :func:`instance_id_maps` over every training view.
-    Returns:
-        :class:`PoseChoice` (candidates with the same transform are rendered once).
-    """
-    if margin_pixels not in ("all", "pair"):
-        raise ValueError(f"margin_pixels must be 'all' or 'pair', got {margin_pixels!r}")
-    views = instance_views(id_maps, instance, max_views, min_pixels)
-    if not candidates or not views:
-        why = "no candidate pose" if not candidates else "not seen in any training view: nothing to compare"
-        return PoseChoice(instance, anchor, None, None, None, [None] * len(candidates), len(views), 0, False, why)
-    transforms = [torch.as_tensor(T, dtype=torch.float32) for T in candidates]
-    unique: List[int] = []  # ICP brings many starts to the very same pose
-    same_as: List[int] = []
-    for k, T in enumerate(transforms):
-        match = next((u for u, j in enumerate(unique) if torch.allclose(T, transforms[j], atol=1e-5)), None)
-        if match is None:
-            unique.append(k)
-            match = len(unique) - 1
-        same_as.append(match)
-    poses = [torch.linalg.inv(transforms[j]) for j in unique]  # template → instance
-    own, unique_scores, pixels = explain_scores(scene, labels, instance, anchor, poses, images, render, views,
-                                                id_maps, rgb_before, per_view)
-    scores = [unique_scores[u] for u in same_as]
-    chosen, rival, accepted = pick_with_margin(scores, transforms, margin_db, rival_deg)
-    pair = None
-    if rival is not None and margin_pixels == "pair":
-        _, pair_list, _ = explain_scores(scene, labels, instance, anchor, [poses[same_as[chosen]], poses[same_as[rival]]],
-                                         images, render, views, id_maps, rgb_before, per_view)
-        pair = (pair_list[0], pair_list[1])
-        accepted = pair[0] - pair[1] >= margin_db
-    choice = PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, "", pair)
-    if rival is None:
-        choice.reason = "is the only pose among the candidates"
-    else:
-        turn = _turn_deg(transforms[chosen], transforms[rival])
-        choice.reason = (f"explains its training pixels {choice.margin_db:.2f} dB better than the best pose turned "
-                         f"{turn:.0f}° from it (margin {margin_db:g} dB)"
-                         + ("" if accepted else ": ambiguous, left as it was"))
-    return choice
-
-
 def gate_registrations(
     scene: Mapping[str, Tensor],
     labels: Tensor,
@@ -453,7 +184,7 @@ def gate_registrations(
             passed, reason = judge(None, None, None, cfg)
             out[i] = GateScore(i, anchor, None, None, None, None, 0, 0, passed, reason)
             continue
-        template = _subset(scene, labels == anchor)
+        template = subset(scene, labels == anchor)
         pose = torch.linalg.inv(torch.as_tensor(transforms[i], dtype=torch.float32))  # template → instance i
         poses = [pose] + [
             turned_pose(pose, template["means"], scene["means"][labels == i], up_t, 2 * math.pi * k / cfg.turns,

@@ -41,19 +41,12 @@ from splatreplace_ns.poses.instance import (
     float64_array,
     instance_sphere,
 )
-from splatreplace_ns.poses.lifting import backproject
+from splatreplace_ns.poses.candidates import pnp_proposals, refined_candidates, turn_proposals
+from splatreplace_ns.poses.decision import choose_candidate
+from splatreplace_ns.poses.evidence import base_rgb, fitness
 from splatreplace_ns.poses.matcher_base import Matcher
-from splatreplace_ns.poses.matching import make_matcher, rank_view_pairs
-from splatreplace_ns.poses.pnp import relative_transform_from_pnp
-from splatreplace_ns.poses.refine import (
-    _base_rgb,
-    _fitness,
-    _photometric_fitness,
-    _refine,
-    _upright_polish,
-    choose_candidate,
-    multistart_poses,
-)
+from splatreplace_ns.poses.matching import make_matcher
+from splatreplace_ns.poses.refine import icp_from, upright_polish
 from splatreplace_ns.poses.up_axis import floor_up_axis
 from splatreplace_ns.poses.virtual_cameras import framing_distance, sphere_cameras
 
@@ -205,7 +198,7 @@ def _register_fpfh(source, template, cfg, t0) -> RegistrationResult:
         return RegistrationResult(sid, tid, message=f"{_name(source)}: FPFH + RANSAC found no alignment",
                                   time_s=time.perf_counter() - t0)
     coarse = T
-    T, fit_icp = _refine(src, tgt, T, radius, cfg)
+    T, fit_icp = icp_from(src, tgt, T, radius, cfg)
     fit = fit_icp if cfg.icp else fit
     ok = fit >= cfg.min_fitness
     msg = f"{_name(source)}: FPFH + RANSAC" + (" + ICP" if cfg.icp else "") + f", fitness {fit:.3f}"
@@ -255,76 +248,43 @@ def register_instance(
 
     src_views = render_instance_views(source, cfg, cameras)
     tpl_views = template_views if template_views is not None else render_instance_views(template, cfg, cameras)
-    width, height = src_views.size
-    src_masks = src_views.alphas > cfg.min_alpha
-    tpl_masks = tpl_views.alphas > cfg.min_alpha
-    if not src_masks.any():
+    if not (src_views.alphas > cfg.min_alpha).any():
         return fail("not visible in any view (empty renders)")
 
+    # candidates: the PnP poses of the top-k view pairs, and (with the colour score) turns about the floor's normal
     fast = get_matcher(cfg.fast_matcher, onnx_model=cfg.onnx_model)
     robust = get_matcher(cfg.robust_matcher, onnx_model=cfg.onnx_model)
-    pairs = rank_view_pairs(fast, list(src_views.images), list(tpl_views.images), k=cfg.top_k,
-                            masks_a=list(src_masks), masks_b=list(tpl_masks))
-
-    candidates = []  # (num_inliers, i, j, coarse transform)
-    reasons = []
-    for i, j, _count in pairs:
-        uv_s, uv_t, _ = robust.match(src_views.images[i], tpl_views.images[j], src_masks[i], tpl_masks[j])
-        if len(uv_s) < cfg.min_matches:
-            reasons.append(f"pair ({i},{j}): {len(uv_s)} matches")
-            continue
-        pts, valid = backproject(uv_s, src_views.depths[i], src_views.Ks[i], src_views.viewmats[i])
-        if valid.sum() < cfg.min_matches:
-            reasons.append(f"pair ({i},{j}): {int(valid.sum())} matches with depth")
-            continue
-        rel = relative_transform_from_pnp(
-            pts[valid], uv_t[valid], tpl_views.Ks[j], tpl_views.viewmats[j], width, height,
-            max_error_px=cfg.pnp_max_error_px, min_inliers=max(4, cfg.min_inliers), seed=cfg.seed,
-        )
-        if not rel.success:
-            reasons.append(f"pair ({i},{j}): PnP {rel.pnp.reason}")
-            continue
-        candidates.append((rel.num_inliers, i, j, rel.transform))
+    proposals, reasons = pnp_proposals(src_views, tpl_views, fast, robust, cfg)
     _, radius = instance_sphere(template)
     src_keep = source.solid(cfg.min_opacity, cfg.min_solid_points)
     tpl_keep = template.solid(cfg.min_opacity, cfg.min_solid_points)
     src_c, tpl_c = source.centres()[src_keep], template.centres()[tpl_keep]
-    if cfg.select == "photometric" and cfg.icp:  # the starts are 360°/turns apart: only ICP brings them home
-        # turn k about the up axis is stored as the view pair (-1, k)
-        starts = multistart_poses(src_c, tpl_c, cfg.multistart_turns, cfg.up_axis)
-        candidates += [(0, -1, k, T) for k, T in enumerate(starts)]
-    if not candidates:
+    photometric = cfg.select == "photometric"
+    if photometric:
+        proposals += turn_proposals(src_c, tpl_c, cfg)
+    if not proposals:
         detail = "; ".join(reasons[:3]) if reasons else "no view pairs"
         return fail(f"registration failed, no view pair gave a pose ({detail})")
+    proposals.sort(key=lambda c: (-c[0], c[1], c[2]))
+    n_posed = len(proposals)
+    if not photometric:  # the paper: the pair with the most PnP inliers, then ICP
+        proposals = proposals[:1]
 
-    candidates.sort(key=lambda c: (-c[0], c[1], c[2]))
-    if cfg.select == "inliers":  # the paper: the pair with the most PnP inliers, then ICP
-        n_inl, i, j, coarse = candidates[0]
-        T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
-        score = None
-        tried = [{"transform": T, "fitness": fit, "colour": None, "inliers": n_inl, "pair": (i, j)}]
-    else:  # refine every candidate, keep the most photometrically consistent alignment
-        src_rgb, tpl_rgb = _base_rgb(source)[src_keep], _base_rgb(template)[tpl_keep]
-        refined = []
-        for n_inl, i, j, coarse in candidates:
-            T, fit = _refine(src_c, tpl_c, coarse, radius, cfg)
-            score = _photometric_fitness(src_c, src_rgb, tpl_c, tpl_rgb, T, cfg.icp_max_distance_rel * radius,
-                                         cfg.color_tolerance)
-            refined.append((score, n_inl, i, j, coarse, T, fit))
-        at = choose_candidate([r[6] for r in refined], [r[0] for r in refined],
-                              [(r[1], -r[2], -r[3]) for r in refined], cfg)
-        score, n_inl, i, j, coarse, T, fit = refined[at]
-        tried = [{"transform": r[5], "fitness": r[6], "colour": r[0], "inliers": r[1], "pair": (r[2], r[3])}
-                 for r in refined]
-    chosen_T = T
-    T, polish_note = _upright_polish(src_c, tpl_c, T, radius, cfg)
-    if T is not chosen_T:  # polished: its fitness changed
-        fit = _fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
+    # evidence on the Gaussians, then the decision (the method's pipeline decides again against the training images)
+    tried = refined_candidates(proposals, src_c, tpl_c, base_rgb(source)[src_keep], base_rgb(template)[tpl_keep],
+                               radius, cfg, with_colour=photometric)
+    at = 0 if not photometric else choose_candidate(
+        [c["fitness"] for c in tried], [c["colour"] for c in tried],
+        [(c["inliers"], -c["pair"][0], -c["pair"][1]) for c in tried], cfg)
+    chosen = tried[at]
+    score, n_inl, (i, j), coarse = chosen["colour"], chosen["inliers"], chosen["pair"], chosen["coarse"]
+    T, polish_note = upright_polish(src_c, tpl_c, chosen["transform"], radius, cfg)
+    fit = chosen["fitness"] if T is chosen["transform"] else fitness(src_c, tpl_c, T, cfg.icp_max_distance_rel * radius)
     ok = fit >= cfg.min_fitness and (score is None or score >= cfg.min_photometric_fitness)
     if i < 0:
-        msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {len(candidates)} starts"
+        msg = f"{_name(source)}: multi-start turn {360.0 * j / max(cfg.multistart_turns, 1):.0f}° of {n_posed} starts"
     else:
-        msg = f"{_name(source)}: view pair ({i},{j}) of {len(candidates)} posed, {n_inl} PnP inliers"
+        msg = f"{_name(source)}: view pair ({i},{j}) of {n_posed} posed, {n_inl} PnP inliers"
     msg += (", ICP" if cfg.icp else "") + polish_note + f", fitness {fit:.3f}"
     if score is not None:
         msg += f", photometric fitness {score:.3f}"
@@ -332,8 +292,9 @@ def register_instance(
         msg = (f"{_name(source)}: registration rejected (fitness {fit:.3f}, min {cfg.min_fitness}; "
                f"photometric fitness {score if score is not None else float('nan'):.3f}, "
                f"min {cfg.min_photometric_fitness})")
+    candidates = [{k: c[k] for k in ("transform", "fitness", "colour", "inliers", "pair")} for c in tried]
     return RegistrationResult(sid, tid, T if ok else np.eye(4), ok, n_inl, fit, msg,
-                              time.perf_counter() - t0, (i, j), coarse, T, tried)
+                              time.perf_counter() - t0, (i, j), coarse, T, candidates)
 
 
 def with_floor_up_axis(

@@ -24,7 +24,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from splatreplace_ns.poses.gate import GAUSSIAN_KEYS, RenderFn, psnr
+from splatreplace_ns.poses.evidence import GAUSSIAN_KEYS, RenderFn, psnr
 from splatreplace_ns.template.build import InstanceTable
 
 

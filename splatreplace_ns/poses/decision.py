@@ -1,0 +1,199 @@
+"""The decision on a pose: which candidate is kept, and whether it is accepted or the instance stays as it was.
+
+With the training images at hand (the method's pipeline, ``RegistrationConfig.image_choice``) :func:`choose_pose`
+decides: the candidate whose placed template explains the instance's training pixels best
+(:func:`splatreplace_ns.poses.evidence.explain_scores`), accepted only when every rival turned far from it explains
+them clearly worse. Without images (registration on its own, e.g. ``splatreplace bench register``)
+:func:`choose_candidate` decides on the Gaussians' evidence and thresholds. :func:`leave_lone_copies` then leaves
+every class with a single registered copy as it was: it has nothing to share.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.errors import geodesic_deg
+from splatreplace_ns.poses.evidence import RenderFn, explain_scores, instance_views
+
+
+def choose_candidate(
+    fitness: Sequence[float], colour: Sequence[float], tiebreak: Sequence[tuple], cfg: RegistrationConfig,
+) -> int:
+    """Which refined candidate pose to keep (``select="photometric"``).
+
+    In order: acceptable candidates (fitness ≥ ``min_fitness``, colour score ≥ ``min_photometric_fitness``)
+    before the others; shape (fitness ≥ ``colour_fitness_ratio`` × the best fitness among the acceptable
+    ones); then the colour score; ties go to ``tiebreak`` (larger wins).
+
+    Args:
+        fitness, colour: (C,) ICP fitness and colour score of each candidate.
+        tiebreak: (C,) tuples compared last (e.g. PnP inliers, then the earlier view pair).
+    Returns:
+        the chosen index.
+    """
+    n = len(fitness)
+    acceptable = [fitness[k] >= cfg.min_fitness and colour[k] >= cfg.min_photometric_fitness for k in range(n)]
+    best_fit = max((fitness[k] for k in range(n) if acceptable[k]), default=0.0)
+    fits = [fitness[k] >= cfg.colour_fitness_ratio * best_fit for k in range(n)]
+    return max(range(n), key=lambda k: (acceptable[k], fits[k], colour[k], tiebreak[k]))
+
+
+@dataclass
+class PoseChoice:
+    """Which candidate pose explains instance ``instance_id``'s training pixels best (:func:`choose_pose`)."""
+
+    instance_id: int
+    template_id: int
+    chosen: Optional[int]
+    """Index of the chosen candidate (None: not seen in any training view, nothing was compared)."""
+    rival: Optional[int]
+    """Index of the best candidate turned more than the rival angle from the chosen one (None: no such one)."""
+    psnr_own: Optional[float]
+    """dB, by the instance's own Gaussians (the scene as it is), for reference."""
+    scores: List[Optional[float]]
+    """dB, with the template placed under each candidate (after the per-channel gain)."""
+    views: int
+    pixels: int
+    accepted: bool
+    reason: str
+    pair_scores: Optional[Tuple[float, float]] = None
+    """dB of the chosen candidate and of its rival compared on their own pixels only (the instance's and the two
+    placed copies'), when the margin was measured there (``margin_pixels="pair"``)."""
+
+    @property
+    def margin_db(self) -> Optional[float]:
+        if self.chosen is None:
+            return None
+        if self.rival is None:
+            return math.inf
+        if self.pair_scores is not None:
+            return self.pair_scores[0] - self.pair_scores[1]
+        return self.scores[self.chosen] - self.scores[self.rival]
+
+    def as_dict(self) -> Dict:
+        out = asdict(self)
+        margin = self.margin_db
+        out["margin_db"] = None if margin is None or math.isinf(margin) else margin
+        return out
+
+
+def _turn_deg(a: Tensor, b: Tensor) -> float:
+    """Angle (degrees) between the rotation parts of two [4, 4] transforms."""
+    return geodesic_deg(a[:3, :3].double().numpy(), b[:3, :3].double().numpy())
+
+
+def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], margin_db: float,
+                     rival_deg: float) -> Tuple[int, Optional[int], bool]:
+    """The best-scoring candidate, its best rival (turned more than ``rival_deg`` from it) and whether it wins
+    by at least ``margin_db``.
+
+    Args:
+        scores: (C,) PSNR per candidate (higher explains better); transforms: (C,) [4, 4] poses.
+    Returns:
+        (chosen index, rival index or None, accepted).
+    """
+    chosen = max(range(len(scores)), key=lambda k: scores[k])
+    rivals = [k for k in range(len(scores)) if _turn_deg(transforms[k], transforms[chosen]) > rival_deg]
+    rival = max(rivals, key=lambda k: scores[k], default=None)
+    accepted = rival is None or scores[chosen] - scores[rival] >= margin_db
+    return chosen, rival, accepted
+
+
+def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int,
+                candidates: Sequence[Tensor], images: Sequence[Tensor], render: RenderFn,
+                id_maps: Mapping[int, Tensor], rgb_before: Mapping[int, Tensor], margin_db: float,
+                rival_deg: float, max_views: int, min_pixels: int = 16, per_view: bool = False,
+                margin_pixels: str = "all") -> PoseChoice:
+    """Analysis by synthesis: each candidate pose of ``instance`` is judged by rendering the template instance
+    ``anchor`` in its place, with the rest of the scene, into the training views that show the instance most, and
+    comparing with the training images (:func:`explain_scores`). The best-explaining candidate is chosen; it is
+    accepted only when no rival turned more than ``rival_deg`` from it explains the pixels within ``margin_db``
+    (otherwise the pose is ambiguous and the instance stays as it was).
+
+    Args:
+        candidates: (C,) [4, 4] transforms, template ≈ T · instance (world), as registration stores them.
+        per_view: score by the mean of the views' PSNR instead of the PSNR over all views' pixels.
+        margin_pixels: "all": the margin is measured on the pixels every candidate is ranked on (the instance's
+            and any placed copy's); "pair": on the pixels of the instance, the chosen copy and its rival only, so
+            that pixels neither of the two touches (those of far-off candidates) do not shrink the margin.
+        id_maps, rgb_before: from :func:`instance_id_maps` over every training view.
+    Returns:
+        :class:`PoseChoice` (candidates with the same transform are rendered once).
+    """
+    if margin_pixels not in ("all", "pair"):
+        raise ValueError(f"margin_pixels must be 'all' or 'pair', got {margin_pixels!r}")
+    views = instance_views(id_maps, instance, max_views, min_pixels)
+    if not candidates or not views:
+        why = "no candidate pose" if not candidates else "not seen in any training view: nothing to compare"
+        return PoseChoice(instance, anchor, None, None, None, [None] * len(candidates), len(views), 0, False, why)
+    transforms = [torch.as_tensor(T, dtype=torch.float32) for T in candidates]
+    unique: List[int] = []  # ICP brings many starts to the very same pose
+    same_as: List[int] = []
+    for k, T in enumerate(transforms):
+        match = next((u for u, j in enumerate(unique) if torch.allclose(T, transforms[j], atol=1e-5)), None)
+        if match is None:
+            unique.append(k)
+            match = len(unique) - 1
+        same_as.append(match)
+    poses = [torch.linalg.inv(transforms[j]) for j in unique]  # template → instance
+    own, unique_scores, pixels = explain_scores(scene, labels, instance, anchor, poses, images, render, views,
+                                                id_maps, rgb_before, per_view)
+    scores = [unique_scores[u] for u in same_as]
+    chosen, rival, accepted = pick_with_margin(scores, transforms, margin_db, rival_deg)
+    pair = None
+    if rival is not None and margin_pixels == "pair":
+        _, pair_list, _ = explain_scores(scene, labels, instance, anchor, [poses[same_as[chosen]], poses[same_as[rival]]],
+                                         images, render, views, id_maps, rgb_before, per_view)
+        pair = (pair_list[0], pair_list[1])
+        accepted = pair[0] - pair[1] >= margin_db
+    choice = PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, "", pair)
+    if rival is None:
+        choice.reason = "is the only pose among the candidates"
+    else:
+        turn = _turn_deg(transforms[chosen], transforms[rival])
+        choice.reason = (f"explains its training pixels {choice.margin_db:.2f} dB better than the best pose turned "
+                         f"{turn:.0f}° from it (margin {margin_db:g} dB)"
+                         + ("" if accepted else ": ambiguous, left as it was"))
+    return choice
+
+
+def polish_explains_as_well(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, chosen: Tensor,
+                            polished: Tensor, images: Sequence[Tensor], render: RenderFn, id_maps: Mapping[int, Tensor],
+                            rgb_before: Mapping[int, Tensor], max_views: int, per_view: bool = False) -> bool:
+    """Whether the upright polish of the chosen candidate explains the instance's training pixels at least as well
+    as the candidate itself (the polish is kept only then; ties keep it).
+
+    Args:
+        chosen, polished: [4, 4] transforms, template ≈ T · instance; the rest as :func:`choose_pose`.
+    """
+    check = choose_pose(scene, labels, instance, anchor, [chosen, polished], images, render, id_maps, rgb_before,
+                        0.0, 180.0, max_views, per_view=per_view)
+    return check.chosen != 0
+
+
+def leave_lone_copies(registration: Dict[int, Dict], classes: Dict[int, str], min_copies: int) -> List[int]:
+    """Marks as not registered every instance of a class with fewer than ``min_copies`` registered copies (its
+    template copy included): with no other copy to borrow from, replacing it can only lose. → those instances.
+
+    Args:
+        registration: {instance id: {"success", "message", ...}}, changed in place.
+        classes: {instance id: class name}.
+    """
+    registered: Dict[str, List[int]] = {}
+    for iid, entry in registration.items():
+        if entry["success"]:
+            registered.setdefault(classes[int(iid)], []).append(int(iid))
+    alone = sorted(i for ids in registered.values() if len(ids) < min_copies for i in ids)
+    for iid in alone:
+        entry = registration[iid]
+        entry["success"] = False
+        entry["message"] = (f"instance {iid}: not replaced: {len(registered[classes[iid]])} registered cop"
+                            f"{'y' if len(registered[classes[iid]]) == 1 else 'ies'} of '{classes[iid]}' (fewer than "
+                            f"{min_copies}), nothing to share")
+    return alone

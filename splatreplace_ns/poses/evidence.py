@@ -1,0 +1,204 @@
+"""The evidence a candidate pose is judged by: how it lays the instance's Gaussians on the template's (shape and
+colour), and how well the template placed under it explains the instance's pixels in the training images.
+
+Gaussians' evidence (:func:`fitness`, :func:`colour_agreement`) needs nothing but the two instances; the images'
+evidence (:func:`explain_scores`) renders the scene with the template placed in the instance's place into the
+training views that show the instance most. :mod:`splatreplace_ns.poses.decision` turns either into a decision.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Dict, List, Mapping, Sequence, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from splatreplace_ns.instances.masks2d import labels_from_weights, one_hot_labels
+from splatreplace_ns.poses.instance import InstanceGaussians, float64_array
+from splatreplace_ns.render.sh import SH_C0
+from splatreplace_ns.render.transform import transform_gaussians
+
+GAUSSIAN_KEYS = ("means", "quats", "log_scales", "logit_opacities", "sh")
+
+RenderFn = Callable[[int, Dict[str, Tensor], Tensor], Tuple[Tensor, Tensor]]
+"""(training view index, Gaussians with GAUSSIAN_KEYS, extra features [N, D]) → rgb [H, W, 3] in [0, 1] with
+the scene's background, extra features rendered [H, W, D]."""
+
+
+# ----------------------------------------------------------------------------- on the Gaussians
+
+
+def fitness(src: np.ndarray, tgt: np.ndarray, T: np.ndarray, dist: float) -> float:
+    """Fraction of T·src points with a tgt point within ``dist``."""
+    from scipy.spatial import cKDTree
+
+    if len(src) == 0 or len(tgt) == 0:
+        return 0.0
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    d, _ = cKDTree(tgt).query(moved, k=1, distance_upper_bound=dist)
+    return float(np.isfinite(d).mean())
+
+
+def base_rgb(inst: InstanceGaussians) -> np.ndarray:
+    """(N, 3) view-independent colour: the RGB itself, or the SH DC term mapped like gsplat (c0·C + 0.5)."""
+    c = float64_array(inst.colors)
+    if c.ndim == 3:
+        return np.clip(SH_C0 * c[:, 0, :] + 0.5, 0.0, 1.0)
+    return c[:, :3]
+
+
+def colour_agreement(src, src_rgb, tgt, tgt_rgb, T, dist: float, tol: float) -> float:
+    """Fraction of T·src centres that have a tgt centre within ``dist`` whose colour is within ``tol``
+    (mean absolute RGB difference). Rejects alignments that fit the shape but not the appearance (e.g. a
+    box turned by 180°)."""
+    from scipy.spatial import cKDTree
+
+    if len(src) == 0 or len(tgt) == 0:
+        return 0.0
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    d, idx = cKDTree(tgt).query(moved, k=1, distance_upper_bound=dist)
+    hit = np.isfinite(d)
+    ok = np.zeros(len(src), dtype=bool)
+    ok[hit] = np.abs(src_rgb[hit] - tgt_rgb[idx[hit]]).mean(axis=1) < tol
+    return float(ok.mean())
+
+
+# ----------------------------------------------------------------------------- in the training images
+
+
+def colour_fitted(pred: Tensor, target: Tensor, max_gain: float = 2.0) -> Tensor:
+    """Per-channel gain fitted from ``pred`` to ``target`` (least squares, clamped to [1/max_gain, max_gain]).
+
+    A gain models a copy lit brighter or dimmer, or by a coloured light; no bias and a bounded gain, so that the
+    fit cannot turn a prediction into the pixels' mean colour (which would explain a small, flat footprint
+    whatever the pose).
+
+    Args:
+        pred, target: [P, 3] colours.
+    Returns:
+        [P, 3] ``gain * pred`` clamped to [0, 1].
+    """
+    if pred.shape[0] == 0:
+        return pred
+    gain = (pred * target).sum(0) / pred.pow(2).sum(0).clamp_min(1e-8)
+    return (gain.clamp(1.0 / max_gain, max_gain) * pred).clamp(0.0, 1.0)
+
+
+PSNR_CAP_DB = 50.0
+"""Scores are capped here: beyond it two renders are equal for 8-bit images, and ``inf`` would refuse a perfect pose."""
+
+
+def psnr(pred: Tensor, target: Tensor) -> float:
+    """PSNR (dB, peak 1) over [P, 3] pixels, at most :data:`PSNR_CAP_DB`; NaN pixels count as wrong."""
+    mse = float(torch.nan_to_num((pred.float() - target.float()).pow(2), nan=1.0).mean())
+    return PSNR_CAP_DB if mse <= 10.0 ** (-PSNR_CAP_DB / 10.0) else -10.0 * math.log10(mse)
+
+
+def subset(scene: Mapping[str, Tensor], keep: Tensor) -> Dict[str, Tensor]:
+    return {k: scene[k][keep] for k in GAUSSIAN_KEYS}
+
+
+def _placed(scene: Mapping[str, Tensor], T: Tensor) -> Dict[str, Tensor]:
+    """Gaussians moved by the rigid [4, 4] ``T`` (world → world)."""
+    means, quats, sh = transform_gaussians(T.to(scene["means"]), scene["means"], scene["quats"], scene["sh"])
+    return {"means": means, "quats": quats, "log_scales": scene["log_scales"],
+            "logit_opacities": scene["logit_opacities"], "sh": sh}
+
+
+def _cat(a: Mapping[str, Tensor], b: Mapping[str, Tensor]) -> Dict[str, Tensor]:
+    return {k: torch.cat((a[k], b[k])) for k in GAUSSIAN_KEYS}
+
+
+def instance_id_maps(scene: Mapping[str, Tensor], labels: Tensor, views: Sequence[int],
+                     render: RenderFn) -> Tuple[Dict[int, Tensor], Dict[int, Tensor]]:
+    """One render per training view of the scene as it is: its colours and which instance each pixel shows.
+
+    Returns:
+        ({view: rgb [H, W, 3]}, {view: instance id [H, W] long, 0 = background or weight < 0.5}).
+    """
+    ids = sorted(set(labels.unique().tolist()) - {0})
+    table = torch.tensor([0] + ids, dtype=torch.long, device=labels.device)
+    one_hot = one_hot_labels(torch.searchsorted(table, labels), len(ids)).to(scene["means"].dtype)
+    rgbs, id_maps = {}, {}
+    for v in views:
+        rgb, weights = render(v, dict(scene), one_hot)
+        dense = labels_from_weights(weights, 0.5)
+        id_maps[v] = table.to(dense.device)[dense]
+        rgbs[v] = rgb
+    return rgbs, id_maps
+
+
+def instance_views(id_maps: Mapping[int, Tensor], instance: int, max_views: int, min_pixels: int) -> List[int]:
+    """The (at most ``max_views``) views where ``instance`` covers the most pixels, at least ``min_pixels``."""
+    counts = {v: int((m == instance).sum()) for v, m in id_maps.items()}
+    return [v for v in sorted(counts, key=counts.get, reverse=True) if counts[v] >= min_pixels][:max_views]
+
+
+def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, poses: Sequence[Tensor],
+                   images: Sequence[Tensor], render: RenderFn, views: Sequence[int], id_maps: Mapping[int, Tensor],
+                   rgb_before: Mapping[int, Tensor], per_view: bool = False) -> Tuple[float, List[float], int]:
+    """How well instance ``instance``'s training pixels are explained by its own Gaussians and by the template
+    instance ``anchor``'s Gaussians placed under each pose, with the rest of the scene around them.
+
+    The compared pixels are the same for every pose: those the instance covers in the scene as it is, or any
+    placed copy covers (weight ≥ 0.5), in ``views``. PSNR after a per-channel gain (:func:`colour_fitted`),
+    over all compared pixels (``per_view=False``), or per view and averaged over the views (``per_view=True``:
+    each view is one piece of evidence, so one view rendered badly under every pose does not outweigh the
+    others, see :func:`mean_view_psnr`).
+
+    Args:
+        scene: Gaussians (N) with GAUSSIAN_KEYS; labels: [N] long instance ids.
+        poses: each [4, 4], template → instance (world).
+        images: training images [H, W, 3] (float in [0, 1] or uint8); views: the view indices to compare.
+        id_maps, rgb_before: from :func:`instance_id_maps` (which instance each pixel shows, the scene's render).
+    Returns:
+        (PSNR by the own Gaussians, [PSNR under each pose], number of compared pixels).
+    """
+    rest = subset(scene, labels != instance)
+    template = subset(scene, labels == anchor)
+    candidates = [_placed(template, p) for p in poses]
+    marker = torch.cat((torch.zeros(len(rest["means"]), 1), torch.ones(len(template["means"]), 1)))
+    marker = marker.to(scene["means"])
+    own_px: List[Tensor] = []
+    target_px: List[Tensor] = []
+    cand_px: List[List[Tensor]] = [[] for _ in candidates]
+    for v in views:
+        renders = [render(v, _cat(rest, c), marker) for c in candidates]
+        footprint = id_maps[v] == instance
+        for _, weight in renders:
+            footprint = footprint | (weight[..., 0] >= 0.5)
+        target = images[v][..., :3]  # an RGBA capture's alpha is not compared
+        target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
+        target_px.append(target[footprint])
+        own_px.append(rgb_before[v][footprint].float())
+        for k, (rgb, _) in enumerate(renders):
+            cand_px[k].append(rgb[footprint].float())
+    target_all = torch.cat(target_px)
+    score = mean_view_psnr if per_view else pooled_psnr
+    own = score(own_px, target_px)
+    return own, [score(px, target_px) for px in cand_px], int(target_all.shape[0])
+
+
+def pooled_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
+    """PSNR over the pixels of every view together, after one per-channel gain.
+
+    Args:
+        pred, target: per view, [P_v, 3] colours.
+    """
+    pred_all, target_all = torch.cat(list(pred)), torch.cat(list(target))
+    return psnr(colour_fitted(pred_all, target_all), target_all)
+
+
+def mean_view_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
+    """Mean over views of each view's PSNR, each after its own per-channel gain (a view that no pose explains
+    then weighs as one view, in its error and in its gain).
+
+    Args:
+        pred, target: per view, [P_v, 3] colours (views without pixels are skipped).
+    """
+    scores = [psnr(colour_fitted(p, t), t) for p, t in zip(pred, target) if p.shape[0] > 0]
+    if not scores:
+        raise ValueError("mean_view_psnr: no view has pixels to compare")
+    return sum(scores) / len(scores)
