@@ -104,7 +104,7 @@ def explain_candidates(pipeline, view_counts: Tuple[int, ...]) -> List[Dict[int,
 
     cfg = pipeline.config.registration
     pipeline.model.eval()
-    scene, labels, images, render = pipeline.pose_check_inputs()
+    scene, labels, images, render = pipeline.image_evidence_inputs()
     labels = labels.to(scene["means"].device)
     rgb_before, id_maps = instance_id_maps(scene, labels, range(len(images)), render)
     out: List[Dict[int, Tuple[float, List[float]]]] = [{} for _ in view_counts]

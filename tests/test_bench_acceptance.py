@@ -18,7 +18,7 @@ def turned(deg):
 
     import torch
 
-    from splatreplace_ns.poses.gate import yaw_rotation
+    from splatreplace_ns.poses.candidates import yaw_rotation
 
     return yaw_rotation(torch.tensor([0.0, 0.0, 1.0]), math.radians(deg), torch.zeros(3)).tolist()
 

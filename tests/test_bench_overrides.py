@@ -15,31 +15,31 @@ from splatreplace_ns.poses.variants import PAPER_REGISTRATION, REGISTRATION_VARI
 
 def test_overrides_set_typed_values_deep_in_the_config():
     config = splat_replace_trainer_config(10, 10, 10)
-    apply_overrides(config, ["pipeline.gate.enabled=True", "pipeline.gate.turns=4", "pipeline.gate.margin_own_db=2.5",
+    apply_overrides(config, ["pipeline.revert.enabled=False", "pipeline.revert.max_views=4", "pipeline.revert.margin_db=2",
                              "pipeline.registration.up_axis=[0, 1, 0]", "pipeline.registration.select=inliers"])
-    assert config.pipeline.gate.enabled is True and config.pipeline.gate.turns == 4
-    assert config.pipeline.gate.margin_own_db == 2.5 and isinstance(config.pipeline.gate.margin_own_db, float)
+    assert config.pipeline.revert.enabled is False and config.pipeline.revert.max_views == 4
+    assert config.pipeline.revert.margin_db == 2.0 and isinstance(config.pipeline.revert.margin_db, float)
     assert config.pipeline.registration.up_axis == (0, 1, 0) and config.pipeline.registration.select == "inliers"
-    apply_overrides(config, ["pipeline.gate.enabled=false"])
-    assert config.pipeline.gate.enabled is False
+    apply_overrides(config, ["pipeline.revert.enabled=true"])
+    assert config.pipeline.revert.enabled is True
 
 
 @pytest.mark.parametrize("item, message", [
-    ("pipeline.gate.enabled", "is not PATH=VALUE"),
+    ("pipeline.revert.enabled", "is not PATH=VALUE"),
     ("=3", "is not PATH=VALUE"),
-    ("pipeline.gate.enable=True", "pipeline.gate has no field 'enable'; its fields: enabled"),
-    ("pipelin.gate.enabled=True", "the config has no field 'pipelin'"),
-    ("pipeline.gate=True", "a group of settings"),
-    ("pipeline.gate.enabled=maybe", "expected True or False"),
-    ("pipeline.gate.turns=2.5", "pipeline.gate.turns=2.5: invalid literal"),
+    ("pipeline.revert.enable=True", "pipeline.revert has no field 'enable'; its fields: enabled"),
+    ("pipelin.revert.enabled=True", "the config has no field 'pipelin'"),
+    ("pipeline.revert=True", "a group of settings"),
+    ("pipeline.revert.enabled=maybe", "expected True or False"),
+    ("pipeline.revert.max_views=2.5", "pipeline.revert.max_views=2.5: invalid literal"),
     ("pipeline.registration.up_axis=3", "expected a JSON list"),
 ])
 def test_bad_overrides_say_what_is_wrong(item, message):
     config = splat_replace_trainer_config(10, 10, 10)
-    before = config.pipeline.gate.enabled, config.pipeline.gate.turns
+    before = config.pipeline.revert.enabled, config.pipeline.revert.max_views
     with pytest.raises(ValueError, match=message.replace("[", r"\[").replace(".", r"\.")):
         apply_overrides(config, [item])
-    assert (config.pipeline.gate.enabled, config.pipeline.gate.turns) == before
+    assert (config.pipeline.revert.enabled, config.pipeline.revert.max_views) == before
 
 
 def test_parse_like_keeps_none_fields_open():

@@ -335,9 +335,6 @@ def test_row_settings_differ_only_where_the_row_says():
     ours = rows["ours"]
     assert ours.multistart_turns > 0 and ours.icp and ours.method == "ours" and ours.upright
     assert rows["no_upright"] == replace(ours, upright=False)
-    more = dict(row_configs(BenchRegisterConfig(), ("ours", "no_shape_first")))
-    assert ours.colour_fitness_ratio > 0
-    assert more["no_shape_first"] == replace(ours, colour_fitness_ratio=0.0)
     assert rows["no_multistart"] == replace(ours, multistart_turns=0)
     assert rows["no_icp"] == replace(ours, icp=False)
     assert rows["fpfh"] == replace(ours, method="fpfh")

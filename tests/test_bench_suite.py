@@ -205,8 +205,8 @@ def test_a_variant_from_segmentation_needs_the_defaults_run(tmp_path):
         suite.run_suite(cfg)
     with pytest.raises(ValueError, match="unknown registration variant 'papers'"):
         suite.configure_ours(BenchSuiteConfig(registration="papers"))
-    with pytest.raises(ValueError, match="has no field 'gates'"):
-        suite.configure_ours(BenchSuiteConfig(overrides=("pipeline.gates.enabled=True",)))
+    with pytest.raises(ValueError, match="has no field 'reverts'"):
+        suite.configure_ours(BenchSuiteConfig(overrides=("pipeline.reverts.enabled=False",)))
 
 
 def test_variant_labels_name_the_run_folders():
@@ -214,10 +214,10 @@ def test_variant_labels_name_the_run_folders():
 
     default = BenchSuiteConfig(out_dir=Path("runs"))
     assert suite.variant_label(default) == "" and suite.run_folder(default, "s").name.endswith("-1000")
-    gate = BenchSuiteConfig(out_dir=Path("runs"), overrides=("pipeline.gate.enabled=True",))
-    assert suite.variant_label(gate) == "reg-ours+pipeline.gate.enabled=True"
-    assert suite.run_folder(gate, "s").name.endswith("_reg-ours+pipeline.gate.enabled=True")
-    assert suite.run_folder(gate, "s", default=True) == suite.run_folder(default, "s")
+    no_check = BenchSuiteConfig(out_dir=Path("runs"), overrides=("pipeline.revert.enabled=False",))
+    assert suite.variant_label(no_check) == "reg-ours+pipeline.revert.enabled=False"
+    assert suite.run_folder(no_check, "s").name.endswith("_reg-ours+pipeline.revert.enabled=False")
+    assert suite.run_folder(no_check, "s", default=True) == suite.run_folder(default, "s")
     assert suite.variant_label(BenchSuiteConfig(oracle="gt_poses")) == "oracle-gt_poses"
     both = BenchSuiteConfig(registration="paper", oracle="gt_instances")
     assert suite.variant_label(both) == "reg-paper+oracle-gt_instances"

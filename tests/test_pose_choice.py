@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from splatreplace_ns.poses.decision import choose_pose, pick_with_margin
-from splatreplace_ns.poses.evidence import instance_id_maps, mean_view_psnr, pooled_psnr
-from splatreplace_ns.poses.gate import yaw_rotation
+from splatreplace_ns.poses.evidence import colour_fitted, instance_id_maps, mean_view_psnr, pooled_psnr, psnr
+from splatreplace_ns.poses.candidates import yaw_rotation
 from splatreplace_ns.poses.variants import registration_variant
 from splatreplace_ns.poses.config import RegistrationConfig
 
-from test_replacement_gate import _images, _object, _render_fn, _scene, _views
+from two_boxes import _images, _object, _render_fn, _scene, _views
 
 UP = torch.tensor([0.0, 0.0, 1.0])
 CENTRE_2 = torch.tensor([1.0, 0.0, 0.0])  # instance 2 stands here
@@ -156,3 +156,31 @@ def test_the_margin_on_the_pair_s_own_pixels_does_not_shrink_with_a_far_off_cand
     assert margin([near, turned], "pair") == pytest.approx(margin([near, turned], "all"), abs=1e-4)
     with pytest.raises(ValueError, match="margin_pixels"):
         choose_pose(scene, labels, 2, 1, [near, turned], images, render, ids, rgb, 1.0, 20.0, 4, margin_pixels="some")
+
+
+def test_fine_turns_bring_a_candidate_left_a_few_degrees_off_to_the_pose_the_images_show():
+    scene, labels, T, images, render, ids, rgb = _setup()
+    candidates = [_turned(T, 6.0), _turned(T, 90.0)]
+    plain = choose_pose(scene, labels, 2, 1, candidates, images, render, ids, rgb, 1.0, 20.0, 4)
+    assert plain.chosen == 0 and plain.transform is None and plain.turn_deg == 0.0
+    fine = choose_pose(scene, labels, 2, 1, candidates, images, render, ids, rgb, 1.0, 20.0, 4,
+                       fine_turns_deg=(-6.0, -3.0, 3.0, 6.0), up=UP, centre=CENTRE_2)
+    assert fine.chosen == 0 and fine.turn_deg == -6.0 and fine.accepted, fine.reason
+    assert torch.allclose(torch.tensor(fine.transform), T, atol=1e-4)  # exactly the true pose
+    assert fine.chosen_score > plain.scores[0] + 1.0  # and it explains the pixels clearly better
+    assert fine.rival == 1 and fine.margin_db == pytest.approx(fine.chosen_score - fine.rival_score)
+    assert "turned -6°" in fine.reason
+    # without an axis or a pivot there is nothing to turn about: the plain choice
+    assert choose_pose(scene, labels, 2, 1, candidates, images, render, ids, rgb, 1.0, 20.0, 4,
+                       fine_turns_deg=(-6.0, 6.0)).transform is None
+
+
+def test_colour_fit_undoes_a_per_channel_gain_but_cannot_flatten_a_prediction_to_the_mean():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(500, 3, generator=g) * 0.6 + 0.2
+    pred = target * torch.tensor([0.7, 1.0, 1.4])  # a copy lit by a coloured light
+    assert psnr(colour_fitted(pred, target), target) >= 49.0
+    assert psnr(pred, target) < 25.0
+    unrelated = torch.rand(500, 3, generator=g)
+    mean_only = psnr(target.mean(0).expand_as(target), target)
+    assert psnr(colour_fitted(unrelated, target), target) < mean_only

@@ -309,19 +309,16 @@ def test_multistart_registers_when_no_view_pair_gives_a_pose(tiny):
     assert rot_err < 1.0 and t_err < 0.01, res.message
 
 
-def test_choose_candidate_shape_first_then_colour():
-    """Order of the candidate choice: acceptable, shape (fitness within the ratio of the best), colour. A wrong
-    pose of a partly seen copy that wins on colour but fits clearly worse (fitness 0.535 against 0.680) loses; one
-    that fits about as well does not."""
+def test_choose_candidate_acceptable_first_then_colour_then_ties():
+    """Order of the candidate choice without images: acceptable (fitness and colour over their minimums), then the
+    colour score, then the tie-break."""
     from splatreplace_ns.poses.decision import choose_candidate
 
     cfg = RegistrationConfig()
     ties = [(0, 0, -k) for k in range(3)]
-    # 0: wrong, better colour, worse shape; 1: right; 2: unacceptable (colour below the minimum)
-    fitness, colour = [0.535, 0.680, 0.99], [0.29, 0.25, 0.05]
-    assert choose_candidate(fitness, colour, ties, cfg) == 1
-    assert choose_candidate(fitness, colour, ties, replace(cfg, colour_fitness_ratio=0.0)) == 0  # no_shape_first
-    # within the ratio the colour score still decides (0.9 ≥ 0.85 × 0.95)
-    assert choose_candidate([0.90, 0.95], [0.6, 0.5], ties[:2], cfg) == 0
+    # 0: acceptable, better colour; 1: acceptable; 2: best fitness but unacceptable (colour below the minimum)
+    assert choose_candidate([0.535, 0.680, 0.99], [0.29, 0.25, 0.05], ties, cfg) == 0
+    assert choose_candidate([0.535, 0.680, 0.99], [0.25, 0.25, 0.05], ties, cfg) == 0  # a tie: the tie-break
+    assert choose_candidate([0.535, 0.680, 0.99], [0.25, 0.25, 0.05], ties[::-1], cfg) == 1
     # nothing acceptable: still an index (the caller reports the failure)
     assert choose_candidate([0.1, 0.15], [0.5, 0.4], ties[:2], cfg) in (0, 1)

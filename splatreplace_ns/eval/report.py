@@ -269,7 +269,7 @@ def registration_report(
 
 def replacement_report(model) -> Dict[str, Dict]:
     """Per instance: whether it was replaced by its class template and why (registration, the choice of its
-    pose against the training images, the optional pose check and the check after fine-tuning); empty before
+    pose against the training images and the check after fine-tuning); empty before
     registration. Needs no ground truth."""
     out = {}
     for iid, entry in sorted((getattr(model, "registration", None) or {}).items()):
@@ -277,8 +277,6 @@ def replacement_report(model) -> Dict[str, Dict]:
         if "image_choice" in entry:
             row["pose_choice"] = {k: entry["image_choice"].get(k)
                                   for k in ("chosen", "rival", "margin_db", "psnr_own", "views", "accepted")}
-        if "gate" in entry:
-            row["pose_check"] = {k: entry["gate"].get(k) for k in ("psnr_own", "psnr_pose", "psnr_best_turn", "best_turn_deg")}
         if "check_after_finetune" in entry:
             row["check_after_finetune"] = {k: entry["check_after_finetune"].get(k)
                                            for k in ("psnr_own", "psnr_replaced", "loss_db", "views", "revert")}

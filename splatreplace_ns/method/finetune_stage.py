@@ -34,9 +34,6 @@ class FinetuneStage:
         }
         # template space of a class = the world frame of the instance its registrations map onto
         templates = {classes[iid]: int(r["template"]) for iid, r in model.registration.items() if r["success"]}
-        if self.config.gate.enabled and transforms:
-            for iid in self.gate_poses(transforms, templates, classes):
-                transforms.pop(iid)
         params = {name: p.detach() for name, p in model.gauss_params.items() if name not in ("template_class", "sh_offsets")}
         labels = model.instance_labels.to(model.means.device)
         owner = self.leftover_owner()

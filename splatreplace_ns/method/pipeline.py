@@ -33,7 +33,6 @@ from splatreplace_ns.method.masks_stage import MasksStage
 from splatreplace_ns.method.model import SplatReplaceModelConfig
 from splatreplace_ns.method.registration_stage import RegistrationStage
 from splatreplace_ns.method.segmentation_stage import SegmentationConfig, SegmentationStage
-from splatreplace_ns.poses.gate import ReplacementGateConfig
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.template.revert import RevertGateConfig
 from splatreplace_ns.viewer.selection import InstanceSelectionControls
@@ -58,10 +57,6 @@ class SplatReplacePipelineConfig(VanillaPipelineConfig):
     """A capture without instance masks gets them from the clicks of clicks.json after the base stage
     (geometric backend of ``splatreplace masks``, written to ``instance_masks/`` beside transforms.json)."""
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    gate: ReplacementGateConfig = field(default_factory=ReplacementGateConfig)
-    """With ``--pipeline.gate.enabled True``, before an instance is replaced its registered pose is checked against
-    its training images; a pose that explains them clearly worse than the instance itself, or worse than the same
-    pose turned, leaves the instance as it is."""
     revert: RevertGateConfig = field(default_factory=RevertGateConfig)
     """Part-way through fine-tuning every replaced instance is compared with its own Gaussians on its training
     pixels; one whose copy explains them clearly worse gets its own Gaussians back (``--pipeline.revert.enabled

@@ -2,13 +2,13 @@
 
 In: the selected instances' Gaussians. Out: ``model.registration`` (per instance: template, pose, accepted or why
 not) and ``registration_report``. Registration is ``poses.register``; the choice of each pose against the training
-images is ``poses.candidates`` → ``poses.evidence`` → ``poses.decision``; the optional check before replacement is
-``poses.gate``.
+images is ``poses.candidates`` → ``poses.evidence`` → ``poses.decision``.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Dict, List
 
 import numpy as np
@@ -18,7 +18,6 @@ from rich.progress import track
 
 from splatreplace_ns.poses.decision import choose_pose, leave_lone_copies, polish_explains_as_well
 from splatreplace_ns.poses.evidence import instance_id_maps
-from splatreplace_ns.poses.gate import gate_registrations
 from splatreplace_ns.poses.refine import polish_chosen
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.instance import InstanceGaussians
@@ -27,7 +26,7 @@ from splatreplace_ns.poses.register import register_instances, with_floor_up_axi
 
 class RegistrationStage:
     """The registration stage (paper §4.2): every selected instance onto its class template, each pose chosen against
-    the training images, optionally checked before replacement."""
+    the training images."""
 
     def register_instances(self, instances: Dict, classes: Dict[int, str], config) -> Dict:
         """The registration hook (paper §4.2): every instance onto its class template.
@@ -98,7 +97,7 @@ class RegistrationStage:
         model = self.model
         was_training = model.training
         model.eval()
-        scene, labels, images, render = self.pose_check_inputs()
+        scene, labels, images, render = self.image_evidence_inputs()
         labels = labels.to(scene["means"].device)
         rgb_before, id_maps = instance_id_maps(scene, labels, range(len(images)), render)
         for iid, entry in track(list(model.registration.items()), description="choosing poses against the training images",
@@ -109,18 +108,21 @@ class RegistrationStage:
             choice = choose_pose(scene, labels, int(iid), anchor, [c["transform"] for c in entry["candidates"]],
                                  images, render, id_maps, rgb_before, config.image_margin_db, config.image_rival_deg,
                                  config.image_views, per_view=config.image_score == "per_view",
-                                 margin_pixels=config.image_margin_pixels)
+                                 margin_pixels=config.image_margin_pixels, fine_turns_deg=config.image_fine_turns_deg,
+                                 up=config.up_axis, centre=torch.as_tensor(instances[int(iid)].centres().mean(axis=0)),
+                                 fine_poses=config.image_fine_poses)
             entry["image_choice"] = choice.as_dict()
             if choice.chosen is None:
                 CONSOLE.log(f"instance {iid}: {choice.reason}; registration's decision stands")
                 continue
             chosen = entry["candidates"][choice.chosen]
-            T, fitness, note = polish_chosen(instances[int(iid)], instances[anchor], np.asarray(chosen["transform"]),
-                                             config)
-            if note and not np.allclose(T, chosen["transform"]) and not polish_explains_as_well(
-                    scene, labels, int(iid), anchor, chosen["transform"], T, images, render, id_maps, rgb_before,
+            start_T = np.asarray(chosen["transform"] if choice.transform is None else choice.transform, dtype=np.float64)
+            T, fitness, note = polish_chosen(instances[int(iid)], instances[anchor], start_T, config)
+            if note and not np.allclose(T, start_T) and not polish_explains_as_well(
+                    scene, labels, int(iid), anchor, start_T, T, images, render, id_maps, rgb_before,
                     config.image_views, per_view=config.image_score == "per_view"):
-                T, fitness = np.asarray(chosen["transform"]), chosen["fitness"]
+                T, fitness = start_T, polish_chosen(instances[int(iid)], instances[anchor], start_T,
+                                                    replace(config, upright=False))[1]
                 note = " (the upright polish explains the training pixels worse: not kept)"
             entry["proposed_transform"] = np.asarray(T).tolist()
             entry["success"] = bool(choice.accepted)
@@ -132,7 +134,7 @@ class RegistrationStage:
         model.train(was_training)
         return time.perf_counter() - start
 
-    def pose_check_inputs(self):
+    def image_evidence_inputs(self):
         """What a pose is judged against the training images with (``splatreplace_ns.poses.evidence``): the scene
         as carving leaves it, whichever instances are replaced → (Gaussians with ``GAUSSIAN_KEYS``, [N] instance
         labels, training images, render function ``(view, Gaussians, extra) → (rgb, extra)``)."""
@@ -150,40 +152,3 @@ class RegistrationStage:
             return model.render_gaussian_set(cameras[view : view + 1], gaussians, extra)
 
         return scene, model.instance_labels[keep.cpu()], images, render
-
-    @torch.no_grad()
-    def gate_poses(self, transforms: Dict[int, torch.Tensor], templates: Dict[str, int], classes: Dict[int, str]) -> List[int]:
-        """Checks each registered pose against the training images (``splatreplace_ns.poses.gate``). A better
-        turn found there replaces the pose in ``transforms``; returns the instances refused, which are marked as
-        not registered and stay as they are."""
-        start = time.perf_counter()
-        model = self.model
-        was_training = model.training
-        model.eval()
-        scene, labels, images, render = self.pose_check_inputs()
-        up = self.registration_report.get("up_axis", self.config.registration.up_axis)
-        scores = gate_registrations(scene, labels, classes, transforms, templates, images, render, up, self.config.gate)
-        model.train(was_training)
-        refused = []
-        for iid, score in scores.items():
-            entry = model.registration[iid]
-            entry["gate"] = score.as_dict()
-            if score.passed and score.transform is not None:
-                transforms[iid] = torch.tensor(score.transform, dtype=torch.float32)
-                entry["registered_transform"] = entry["transform"]  # kept for scoring the registration itself
-                entry["transform"] = score.transform
-                entry["message"] = f"instance {iid}: {score.reason}"
-                CONSOLE.log(entry["message"])
-            if not score.passed:
-                refused.append(iid)
-                entry["success"] = False
-                entry["message"] = f"instance {iid}: not replaced: {score.reason}"
-                CONSOLE.log(f"[bold yellow]{entry['message']}")
-        self.registration_report["gate"] = {"time_s": time.perf_counter() - start, "refused": refused,
-                                            "checked": sorted(scores),
-                                            "turned": sorted(i for i, sc in scores.items() if sc.transform is not None)}
-        self.registration_report.setdefault("failures", []).extend(refused)
-        self.registration_report["time_s"] = self.registration_report.get("time_s", 0.0) + time.perf_counter() - start
-        CONSOLE.log(f"pose check against the training images: {len(scores)} instances, {len(refused)} refused "
-                    f"({time.perf_counter() - start:.1f} s)")
-        return refused

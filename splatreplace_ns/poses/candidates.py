@@ -9,9 +9,12 @@ colour agreement, PnP inliers). Conventions as in :mod:`splatreplace_ns.poses.re
 
 from __future__ import annotations
 
+import math
 from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
+import torch
+from torch import Tensor
 
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.evidence import colour_agreement
@@ -91,6 +94,17 @@ def multistart_poses(src: np.ndarray, tgt: np.ndarray, steps: int, up=(0.0, 0.0,
         T[:3, 3] = mu_t - R @ mu_s
         out.append(T)
     return out
+
+
+def yaw_rotation(axis: Tensor, angle: float, centre: Tensor) -> Tensor:
+    """[4, 4] rotation by ``angle`` (radians, right-handed) about the line through ``centre`` [3] along ``axis`` [3]."""
+    x, y, z = (axis / axis.norm().clamp_min(1e-12)).tolist()
+    K = torch.tensor([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]], dtype=axis.dtype)
+    R = torch.eye(3, dtype=axis.dtype) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
+    T = torch.eye(4, dtype=axis.dtype)
+    T[:3, :3] = R
+    T[:3, 3] = centre.to(axis.dtype) - R @ centre.to(axis.dtype)
+    return T
 
 
 def turn_proposals(src: np.ndarray, tgt: np.ndarray, cfg: RegistrationConfig) -> List[Proposal]:

@@ -75,11 +75,6 @@ class RegistrationConfig:
         upright_max_tilt_deg: a chosen pose tilted further than this from ``up_axis`` is not polished (a copy
             that really leans or lies on its side; free ICP on a sparse copy tilts it by several degrees, see
             docs/deviations.md, upright polish).
-        colour_fitness_ratio: with select="photometric", the colour score chooses only among the acceptable
-            candidates whose fitness is at least this fraction of the best one's (shape first). Under one light
-            a side face's colour depends on where it points in the world, so a wrong pose that lays a partly
-            seen copy's lit faces on the template's lit faces can win on colour while fitting the shape clearly
-            worse. 0: the colour score alone (bench register, row ``no_shape_first``).
         seed: RANSAC seed.
         image_choice: with select="photometric" and the training images at hand (the method's pipeline), every
             refined candidate is rendered into the instance's training views with the template in its place and
@@ -90,6 +85,11 @@ class RegistrationConfig:
             instance stays as it was.
         image_rival_deg: candidates closer than this to the chosen one are the same pose, not rivals.
         image_views: training views compared per instance (those where it covers the most pixels).
+        image_fine_turns_deg: the leading poses (the best candidate and its strongest rivals, ``image_fine_poses`` of
+            them) are tried again turned by each of these angles about the floor's normal through the instance, and
+            the choice is made among the candidates and those turns (empty: off). ICP can leave a partly seen copy a
+            few degrees off while placing its half-turn flip exactly.
+        image_fine_poses: how many leading distinct poses get the fine turns.
         image_score: "pooled": a candidate's PSNR over all compared views' pixels together; "per_view": the mean
             of each view's PSNR (each view one piece of evidence; see docs/deviations.md for what each measured).
         image_margin_pixels: where the margin between the chosen candidate and its rival is measured: "all": the
@@ -132,12 +132,13 @@ class RegistrationConfig:
     up_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     upright: bool = True
     upright_max_tilt_deg: float = 15.0
-    colour_fitness_ratio: float = 0.85
     seed: int = 0
     image_choice: bool = True
     image_margin_db: float = 1.0
     image_rival_deg: float = 20.0
     image_views: int = 6
+    image_fine_turns_deg: tuple[float, ...] = ()
+    image_fine_poses: int = 2
     image_score: Literal["pooled", "per_view"] = "pooled"
     image_margin_pixels: Literal["all", "pair"] = "all"
     min_class_copies: int = 2

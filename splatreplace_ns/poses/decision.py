@@ -17,6 +17,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from splatreplace_ns.poses.candidates import yaw_rotation
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.errors import geodesic_deg
 from splatreplace_ns.poses.evidence import RenderFn, explain_scores, instance_views
@@ -28,8 +29,8 @@ def choose_candidate(
     """Which refined candidate pose to keep (``select="photometric"``).
 
     In order: acceptable candidates (fitness ≥ ``min_fitness``, colour score ≥ ``min_photometric_fitness``)
-    before the others; shape (fitness ≥ ``colour_fitness_ratio`` × the best fitness among the acceptable
-    ones); then the colour score; ties go to ``tiebreak`` (larger wins).
+    before the others; then the colour score; ties go to ``tiebreak`` (larger wins). With the training images at
+    hand :func:`choose_pose` decides instead.
 
     Args:
         fitness, colour: (C,) ICP fitness and colour score of each candidate.
@@ -39,9 +40,7 @@ def choose_candidate(
     """
     n = len(fitness)
     acceptable = [fitness[k] >= cfg.min_fitness and colour[k] >= cfg.min_photometric_fitness for k in range(n)]
-    best_fit = max((fitness[k] for k in range(n) if acceptable[k]), default=0.0)
-    fits = [fitness[k] >= cfg.colour_fitness_ratio * best_fit for k in range(n)]
-    return max(range(n), key=lambda k: (acceptable[k], fits[k], colour[k], tiebreak[k]))
+    return max(range(n), key=lambda k: (acceptable[k], colour[k], tiebreak[k]))
 
 
 @dataclass
@@ -65,6 +64,14 @@ class PoseChoice:
     pair_scores: Optional[Tuple[float, float]] = None
     """dB of the chosen candidate and of its rival compared on their own pixels only (the instance's and the two
     placed copies'), when the margin was measured there (``margin_pixels="pair"``)."""
+    transform: Optional[List[List[float]]] = None
+    """The chosen [4, 4] pose where a fine turn of candidate ``chosen`` explains the pixels better than it (None:
+    the candidate itself)."""
+    turn_deg: float = 0.0
+    """Degrees the chosen pose is turned from candidate ``chosen`` (about the up axis through the instance)."""
+    chosen_score: Optional[float] = None
+    rival_score: Optional[float] = None
+    """dB of the chosen pose and of its rival (fine turns included) on the pixels every pose is ranked on."""
 
     @property
     def margin_db(self) -> Optional[float]:
@@ -74,6 +81,8 @@ class PoseChoice:
             return math.inf
         if self.pair_scores is not None:
             return self.pair_scores[0] - self.pair_scores[1]
+        if self.chosen_score is not None and self.rival_score is not None:
+            return self.chosen_score - self.rival_score
         return self.scores[self.chosen] - self.scores[self.rival]
 
     def as_dict(self) -> Dict:
@@ -105,16 +114,35 @@ def pick_with_margin(scores: Sequence[float], transforms: Sequence[Tensor], marg
     return chosen, rival, accepted
 
 
+def _leading_poses(scores: Sequence[float], transforms: Sequence[Tensor], rival_deg: float, count: int) -> List[int]:
+    """The best-scoring pose and, in order of score, the next ones turned more than ``rival_deg`` from every one
+    taken before: at most ``count`` distinct leading poses (indices)."""
+    taken: List[int] = []
+    for k in sorted(range(len(scores)), key=lambda k: -scores[k]):
+        if len(taken) == count:
+            break
+        if all(_turn_deg(transforms[k], transforms[t]) > rival_deg for t in taken):
+            taken.append(k)
+    return taken
+
+
 def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int,
                 candidates: Sequence[Tensor], images: Sequence[Tensor], render: RenderFn,
                 id_maps: Mapping[int, Tensor], rgb_before: Mapping[int, Tensor], margin_db: float,
                 rival_deg: float, max_views: int, min_pixels: int = 16, per_view: bool = False,
-                margin_pixels: str = "all") -> PoseChoice:
+                margin_pixels: str = "all", fine_turns_deg: Sequence[float] = (), up: Optional[Sequence[float]] = None,
+                centre: Optional[Tensor] = None, fine_poses: int = 2) -> PoseChoice:
     """Analysis by synthesis: each candidate pose of ``instance`` is judged by rendering the template instance
     ``anchor`` in its place, with the rest of the scene, into the training views that show the instance most, and
     comparing with the training images (:func:`explain_scores`). The best-explaining candidate is chosen; it is
     accepted only when no rival turned more than ``rival_deg`` from it explains the pixels within ``margin_db``
     (otherwise the pose is ambiguous and the instance stays as it was).
+
+    With ``fine_turns_deg``, the ``fine_poses`` leading distinct poses (the best one and its strongest rivals) are
+    each tried again turned by those angles about ``up`` through ``centre``, and the choice is made again among
+    the candidates and those turns, all on the same pixels: ICP leaves a partly seen copy a few degrees off, where
+    a half-turn flip that ICP placed exactly can explain the pixels better; the images, not the shape, then set
+    the turn.
 
     Args:
         candidates: (C,) [4, 4] transforms, template ≈ T · instance (world), as registration stores them.
@@ -123,6 +151,8 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
             and any placed copy's); "pair": on the pixels of the instance, the chosen copy and its rival only, so
             that pixels neither of the two touches (those of far-off candidates) do not shrink the margin.
         id_maps, rgb_before: from :func:`instance_id_maps` over every training view.
+        fine_turns_deg: (F,) degrees to turn each leading pose by (empty: no fine turns).
+        up: (3,) the axis of the turns (world); centre: [3] the instance's centre (world), the turns' pivot.
     Returns:
         :class:`PoseChoice` (candidates with the same transform are rendered once).
     """
@@ -141,24 +171,43 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
             unique.append(k)
             match = len(unique) - 1
         same_as.append(match)
-    poses = [torch.linalg.inv(transforms[j]) for j in unique]  # template → instance
-    own, unique_scores, pixels = explain_scores(scene, labels, instance, anchor, poses, images, render, views,
-                                                id_maps, rgb_before, per_view)
-    scores = [unique_scores[u] for u in same_as]
-    chosen, rival, accepted = pick_with_margin(scores, transforms, margin_db, rival_deg)
+    poses = [transforms[j] for j in unique]  # instance → template, one per distinct pose
+    origin = list(range(len(unique)))  # which distinct candidate each pose turns
+    turns = [0.0] * len(unique)
+    own, pose_scores, pixels = explain_scores(scene, labels, instance, anchor, [torch.linalg.inv(T) for T in poses],
+                                              images, render, views, id_maps, rgb_before, per_view)
+    if fine_turns_deg and up is not None and centre is not None:
+        up_t = torch.as_tensor(up, dtype=torch.float32)
+        pivot = torch.as_tensor(centre, dtype=torch.float32).cpu()
+        for u in _leading_poses(pose_scores, poses, rival_deg, fine_poses):
+            for deg in fine_turns_deg:
+                poses.append(poses[u] @ yaw_rotation(up_t, math.radians(deg), pivot))
+                origin.append(u)
+                turns.append(float(deg))
+        # scored again, all together: the compared pixels are every pose's footprint, the same for all
+        own, pose_scores, pixels = explain_scores(scene, labels, instance, anchor, [torch.linalg.inv(T) for T in poses],
+                                                  images, render, views, id_maps, rgb_before, per_view)
+    scores = [pose_scores[u] for u in same_as]
+    best, rival_pose, accepted = pick_with_margin(pose_scores, poses, margin_db, rival_deg)
+    chosen = unique[origin[best]]
+    rival = None if rival_pose is None else unique[origin[rival_pose]]
     pair = None
-    if rival is not None and margin_pixels == "pair":
-        _, pair_list, _ = explain_scores(scene, labels, instance, anchor, [poses[same_as[chosen]], poses[same_as[rival]]],
+    if rival_pose is not None and margin_pixels == "pair":
+        _, pair_list, _ = explain_scores(scene, labels, instance, anchor,
+                                         [torch.linalg.inv(poses[best]), torch.linalg.inv(poses[rival_pose])],
                                          images, render, views, id_maps, rgb_before, per_view)
         pair = (pair_list[0], pair_list[1])
         accepted = pair[0] - pair[1] >= margin_db
-    choice = PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, "", pair)
-    if rival is None:
-        choice.reason = "is the only pose among the candidates"
+    choice = PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, "", pair,
+                        None if turns[best] == 0.0 else poses[best].tolist(), turns[best], pose_scores[best],
+                        None if rival_pose is None else pose_scores[rival_pose])
+    fine = f" turned {turns[best]:+.0f}°" if turns[best] else ""
+    if rival_pose is None:
+        choice.reason = f"is the only pose among the candidates{fine}"
     else:
-        turn = _turn_deg(transforms[chosen], transforms[rival])
-        choice.reason = (f"explains its training pixels {choice.margin_db:.2f} dB better than the best pose turned "
-                         f"{turn:.0f}° from it (margin {margin_db:g} dB)"
+        turn = _turn_deg(poses[best], poses[rival_pose])
+        choice.reason = (f"{fine.strip() + ' ' if fine else ''}explains its training pixels {choice.margin_db:.2f} dB "
+                         f"better than the best pose turned {turn:.0f}° from it (margin {margin_db:g} dB)"
                          + ("" if accepted else ": ambiguous, left as it was"))
     return choice
 

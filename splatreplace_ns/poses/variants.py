@@ -29,7 +29,6 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "ours": {},
     "paper": PAPER_REGISTRATION,
     "no_upright": {"upright": False},  # full rigid ICP instead of turns about the floor's normal
-    "no_shape_first": {"colour_fitness_ratio": 0.0},  # the colour score chooses among every acceptable candidate
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
     "no_icp": {"icp": False},
     "no_image_choice": {"image_choice": False},  # the colour score chooses, the thresholds accept

@@ -1,5 +1,5 @@
 """``PATH=VALUE`` settings of a nerfstudio config, as the benchmarks take them (``--overrides
-pipeline.gate.enabled=True``): one setting changed on the command line, typed like the field it replaces."""
+pipeline.revert.enabled=False``): one setting changed on the command line, typed like the field it replaces."""
 
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def apply_overrides(config: Any, overrides: Sequence[str]) -> Any:
         path, sep, text = item.partition("=")
         path = path.strip()
         if not sep or not path:
-            raise ValueError(f"override {item!r} is not PATH=VALUE (e.g. pipeline.gate.enabled=True)")
+            raise ValueError(f"override {item!r} is not PATH=VALUE (e.g. pipeline.revert.enabled=False)")
         target = config
         parts = path.split(".")
         for depth, name in enumerate(parts):

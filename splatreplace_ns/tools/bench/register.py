@@ -78,7 +78,7 @@ from splatreplace_ns.tools.bench.register_scene import (
 )
 
 DEFAULT_ROWS: Tuple[str, ...] = (
-    "ours", "paper", "no_upright", "no_shape_first", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
+    "ours", "paper", "no_upright", "no_multistart", "no_virtual_views", "no_icp", "matchers", "fpfh", "fpfh_no_icp",
     "icp_from_truth",
 )
 
@@ -103,7 +103,7 @@ class BenchRegisterConfig:
     base_iterations: int = 3000
     """Base 3DGS* iterations of the trained model."""
     rows: Tuple[str, ...] = DEFAULT_ROWS
-    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
+    """Rows to run: ours, paper (§4.2 as written: most PnP inliers, rigid ICP, no added rule), no_upright, no_multistart, no_virtual_views, no_icp, matchers (one row per available matcher), matcher:NAME,
     fpfh, fpfh_no_icp, icp_from_truth (ours' refinement started from the ground-truth pose)."""
     pairwise: bool = False
     """Also register every ordered pair of copies within each class of three or more instances (settings of

@@ -50,7 +50,7 @@ def row_configs(cfg, rows: Tuple[str, ...]) -> List[Tuple[str, RegistrationConfi
             out.append((row, replace(base, method="ours", robust_matcher=name)))
         else:
             raise ValueError(
-                f"unknown row {row!r}; choose from ours, paper, no_upright, no_shape_first, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
+                f"unknown row {row!r}; choose from ours, paper, no_upright, no_multistart, no_virtual_views, no_icp, matchers, matcher:NAME, fpfh, "
                 "fpfh_no_icp, icp_from_truth"
             )
     return out

@@ -83,10 +83,10 @@ class BenchSuiteConfig:
     registration: str = "ours"
     """Registration rule of ours (``splatreplace_ns.poses.variants``): ours (the defaults), paper (§4.2 as
     written: most PnP inliers, rigid ICP, no added rule), or the defaults less one rule: no_upright,
-    no_shape_first, no_multistart, no_icp, no_image_choice (the colour score and the thresholds choose instead of
+    no_multistart, no_icp, no_image_choice (the colour score and the thresholds choose instead of
     the training images), no_lone_copies_rule (a class's one registered copy is replaced too)."""
     overrides: Tuple[str, ...] = ()
-    """Settings of ours' trainer config as PATH=VALUE, e.g. pipeline.gate.enabled=True (the baseline keeps its own)."""
+    """Settings of ours' trainer config as PATH=VALUE, e.g. pipeline.revert.enabled=False (the baseline keeps its own)."""
     from_segmentation: bool = False
     """For a variant (--registration or --overrides): resume ours from the checkpoint at the end of segmentation
     of the same scene's run with the defaults at the same budget, and reuse that run's baseline, so a variant of
@@ -171,7 +171,6 @@ def _registration_summary(report: Optional[Dict], model_registration: Dict) -> D
         "refused_right": [r["gt_id"] for r in refused if r["proposed_rotation_error_deg"] <= WRONG_POSE_DEG],
         "refused_wrong": [r["gt_id"] for r in refused if r["proposed_rotation_error_deg"] > WRONG_POSE_DEG],
         "per_instance": report["per_instance"],
-        "gate": {int(k): v["gate"] for k, v in model_registration.items() if "gate" in v},
     }
 
 

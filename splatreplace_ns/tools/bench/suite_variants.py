@@ -25,7 +25,7 @@ def regime(cfg: "BenchSuiteConfig") -> str:
 
 def variant_label(cfg: "BenchSuiteConfig") -> str:
     """The empty string for the defaults; else what differs, e.g. ``reg-paper`` or
-    ``reg-ours+pipeline.gate.enabled=True``."""
+    ``reg-ours+pipeline.revert.enabled=False``."""
     parts = [] if cfg.registration == "ours" and not cfg.overrides else [f"reg-{cfg.registration}", *cfg.overrides]
     return "+".join(parts + ([f"oracle-{cfg.oracle}"] if cfg.oracle else []))
 
