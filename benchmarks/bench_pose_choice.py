@@ -34,7 +34,7 @@ VARIANTS: Dict[str, Dict[str, str]] = {
     "pair": {"image_margin_pixels": "pair"},
     "pair+per_view": {"image_margin_pixels": "pair", "image_score": "per_view"},
     "no_upright": {"upright": False},  # the chosen candidate kept as rigid ICP placed it, not polished
-    "fine_turns": {"image_fine_turns_deg": (-8.0, -4.0, 4.0, 8.0)},  # the two leading poses turned by 4 and 8 degrees
+    "no_fine_turns": {"image_fine_turns_deg": ()},  # the leading poses not tried again turned by 4 and 8 degrees
     "fine_turns_3deg": {"image_fine_turns_deg": (-9.0, -6.0, -3.0, 3.0, 6.0, 9.0)},
 }
 """Settings of ``RegistrationConfig`` each variant changes."""

@@ -88,7 +88,7 @@ class RegistrationConfig:
         image_fine_turns_deg: the leading poses (the best candidate and its strongest rivals, ``image_fine_poses`` of
             them) are tried again turned by each of these angles about the floor's normal through the instance, and
             the choice is made among the candidates and those turns (empty: off). ICP can leave a partly seen copy a
-            few degrees off while placing its half-turn flip exactly.
+            few degrees off while placing its half-turn flip exactly; the images then set the turn.
         image_fine_poses: how many leading distinct poses get the fine turns.
         image_score: "pooled": a candidate's PSNR over all compared views' pixels together; "per_view": the mean
             of each view's PSNR (each view one piece of evidence; see docs/deviations.md for what each measured).
@@ -137,7 +137,7 @@ class RegistrationConfig:
     image_margin_db: float = 1.0
     image_rival_deg: float = 20.0
     image_views: int = 6
-    image_fine_turns_deg: tuple[float, ...] = ()
+    image_fine_turns_deg: tuple[float, ...] = (-8.0, -4.0, 4.0, 8.0)
     image_fine_poses: int = 2
     image_score: Literal["pooled", "per_view"] = "pooled"
     image_margin_pixels: Literal["all", "pair"] = "all"

@@ -31,6 +31,7 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "no_upright": {"upright": False},  # full rigid ICP instead of turns about the floor's normal
     "no_multistart": {"multistart_turns": 0},  # the PnP poses of the top-k view pairs only
     "no_icp": {"icp": False},
+    "no_fine_turns": {"image_fine_turns_deg": ()},  # the image choice among the ICP-refined candidates only
     "no_image_choice": {"image_choice": False},  # the colour score chooses, the thresholds accept
     "no_lone_copies_rule": {"min_class_copies": 1},  # a class's one registered copy is replaced too
 }
