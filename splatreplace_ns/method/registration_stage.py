@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import Dict, List
+from typing import Dict
 
 import numpy as np
 import torch
