@@ -127,22 +127,28 @@ def test_one_tiny_scene_end_to_end(tmp_path, capsys):
     assert json.loads((tmp_path / "again.json").read_text())["scenes"] == result["scenes"]
 
     # a variant of registration resumed from that run's segmentation: the baseline and the segmentation are the
-    # defaults' (not trained again), the registration is the paper's (most PnP inliers, every pose accepted)
+    # defaults' (not trained again), the registration is the paper's (most PnP inliers, every pose accepted); its
+    # fine-tuning is longer than the defaults' (an override of the stage's length sets the steps left to run)
     variant = BenchSuiteConfig(**{**cfg.__dict__, "resume": False, "json": tmp_path / "paper.json",
-                                  "registration": "paper", "from_segmentation": True})
+                                  "registration": "paper", "from_segmentation": True,
+                                  "overrides": ("pipeline.finetune_iterations=40",)})
     variant.main()
     paper = json.loads((tmp_path / "paper.json").read_text())
     (paper_row,) = paper["scenes"]
-    assert paper["variant"] == paper_row["variant"] == "reg-paper" and paper_row["resumed_from_segmentation"]
+    assert paper["variant"] == paper_row["variant"] == "reg-paper+pipeline.finetune_iterations=40"
+    assert paper_row["resumed_from_segmentation"]
     assert paper_row["baseline"] == row["baseline"] and paper_row["segmentation_miou"] == row["segmentation_miou"]
     assert paper_row["coverage"]["own"]["baseline"] == row["coverage"]["own"]["baseline"]  # read back, not retrained
     # resumed after segmentation: no base or contrastive step trained again (times would say so only on a quiet machine)
     assert paper_row["time_s"]["base"] == 0.0 and paper_row["time_s"]["contrastive"] == 0.0
     assert paper_row["gain_masked"] == pytest.approx(paper_row["ours"]["psnr_masked"] - row["baseline"]["psnr_masked"])
-    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_reg-paper"
+    folder = tmp_path / "runs" / f"{suite.scene_name(1, '48x36', 10, 2)}_60-30-30_reg-paper+pipeline.finetune_iterations=40"
     assert (folder / "result.json").exists() and not (folder / "baseline").exists()
     saved = (folder / "ours" / "splat-replace" / "run" / "config.yml").read_text()
     assert "select: inliers" in saved and "multistart_turns: 0" in saved
+    # 40 fine-tuning steps after the 90 of the segmentation's checkpoint (the defaults' 30 would leave 30)
+    assert "finetune_iterations: 40" in saved and "max_num_iterations: 40\n" in saved
+    assert (folder / "ours" / "splat-replace" / "run" / "nerfstudio_models" / "step-000000129.ckpt").exists()
 
     # the oracle from the same segmentation: every instance registered with its ground-truth pose, labelled from
     # the ground-truth masks; the defaults' baseline is reused and their segmentation is not reported as its own

@@ -59,6 +59,16 @@ def configure_ours(cfg: "BenchSuiteConfig"):
     return configure
 
 
+def finetune_length(cfg: "BenchSuiteConfig") -> int:
+    """Fine-tuning steps of ours: ``--finetune-iterations``, or ``pipeline.finetune_iterations`` where an override
+    sets it (a variant of the fine-tuning length resumed from the defaults' segmentation at the same budget)."""
+    from splatreplace_ns.method.config import splat_replace_trainer_config
+    from splatreplace_ns.tools.bench.overrides import apply_overrides
+
+    trial = splat_replace_trainer_config(cfg.base_iterations, cfg.contrastive_iterations, cfg.finetune_iterations)
+    return int(apply_overrides(trial, cfg.overrides).pipeline.finetune_iterations)
+
+
 def forget_click_masks(data: Path) -> None:
     """Removes the masks an earlier run made from the clicks in a folder without masks of its own, so that ours
     makes them again from its own base model (and the masks stage's time is counted)."""
@@ -92,6 +102,8 @@ def train_variant_from_segmentation(data: Path, cfg: "BenchSuiteConfig") -> Dict
             f"{default}: no run with the defaults that kept its checkpoint at the end of segmentation (step "
             f"{B + C - 1}); run `splatreplace bench suite` with the same split, scenes and budget first")
     previous, baseline = defaults_baseline(data, cfg)
+    # an override of the fine-tuning length (pipeline.finetune_iterations) sets how many steps are left to run
+    F = finetune_length(cfg)
     config = make_trainer_config(data, run_folder(cfg, scene_of(data, regime(cfg)).name), B, C, F, experiment_name="ours", progress=True,
                                  resume_from=(checkpoints, B + C - 1))
     configure_ours(cfg)(config)
