@@ -10,7 +10,9 @@ import pytest
 import torch
 
 from splatreplace_ns.poses.decision import choose_pose, pick_with_margin
-from splatreplace_ns.poses.evidence import colour_fitted, instance_id_maps, mean_view_psnr, pooled_psnr, psnr
+from splatreplace_ns.poses.evidence import (PlacedRenders, colour_fitted, instance_id_maps, instance_views, mean_view_psnr,
+                                            pooled_psnr, psnr, subset)
+from splatreplace_ns.render.transform import transform_gaussians
 from splatreplace_ns.poses.candidates import yaw_rotation
 from splatreplace_ns.poses.variants import registration_variant
 from splatreplace_ns.poses.config import RegistrationConfig
@@ -173,6 +175,82 @@ def test_fine_turns_bring_a_candidate_left_a_few_degrees_off_to_the_pose_the_ima
     # without an axis or a pivot there is nothing to turn about: the plain choice
     assert choose_pose(scene, labels, 2, 1, candidates, images, render, ids, rgb, 1.0, 20.0, 4,
                        fine_turns_deg=(-6.0, 6.0)).transform is None
+
+
+def _whole_image_scores(scene, labels, poses, images, render, views, ids, rgb, per_view):
+    """The oracle: each pose (template → instance) rendered whole in every view, the compared pixels taken on the
+    whole image (the instance's and every placed copy's)."""
+    rest, template = subset(scene, labels != 2), subset(scene, labels == 1)
+    marker = torch.cat((torch.zeros(len(rest["means"]), 1), torch.ones(len(template["means"]), 1)))
+    own, target, placed = [], [], [[] for _ in poses]
+    for v in views:
+        renders = []
+        for pose in poses:
+            means, quats, sh = transform_gaussians(pose, template["means"], template["quats"], template["sh"])
+            copy = {**template, "means": means, "quats": quats, "sh": sh}
+            renders.append(render(v, {k: torch.cat((rest[k], copy[k])) for k in rest}, marker))
+        footprint = ids[v] == 2
+        for _, weight in renders:
+            footprint = footprint | (weight[..., 0] >= 0.5)
+        target.append(images[v][footprint])
+        own.append(rgb[v][footprint])
+        for k, (colour, _) in enumerate(renders):
+            placed[k].append(colour[footprint])
+    score = mean_view_psnr if per_view else pooled_psnr
+    return [score(own, target), *[score(px, target) for px in placed], int(sum(t.shape[0] for t in target))]
+
+
+def _flat(scores):
+    own, per_pose, pixels = scores
+    return [own, *per_pose, pixels]
+
+
+@pytest.mark.parametrize("per_view", [False, True])
+def test_renders_kept_in_boxes_score_as_whole_images_and_a_copy_outside_widens_the_box(per_view):
+    scene, labels, T, images, render, ids, rgb = _setup()
+    views = instance_views(ids, 2, 4, 16)
+    shift = torch.eye(4)
+    shift[:3, 3] = torch.tensor([0.0, -1.2, 0.0])  # puts the copy 1.2 m beside the instance: outside its box
+    first = [torch.linalg.inv(_turned(T, d)) for d in (0.0, 90.0)]
+    later = [torch.linalg.inv(_turned(T, 3.0)), torch.linalg.inv(_turned(T, 0.0) @ shift)]
+    calls = []
+
+    def counted(view, g, extra):
+        calls.append(view)
+        return render(view, g, extra)
+
+    placed = PlacedRenders(scene, labels, 2, 1, counted, views, ids)
+    placed.add(first)
+    assert len(calls) == 2 * len(views)
+    before = placed.scores(images, rgb, per_view)
+    assert _flat(before) == pytest.approx(_whole_image_scores(scene, labels, first, images, render, views, ids, rgb, per_view))
+    boxes = dict(placed.boxes)
+    placed.add(later[:1])  # a small turn stays inside the boxes: rendered once per view, nothing again
+    assert placed.boxes == boxes and len(calls) == 3 * len(views)
+    placed.add(later[1:])
+    widened = [v for v in views if placed.boxes[v] != boxes[v]]
+    assert widened  # the far copy reaches outside the boxes: the 3 kept poses are rendered again there, only there
+    assert len(calls) == 4 * len(views) + 3 * len(widened)
+    every = placed.scores(images, rgb, per_view)
+    assert _flat(every) == pytest.approx(_whole_image_scores(scene, labels, first + later, images, render, views, ids, rgb,
+                                                      per_view))
+    pair = placed.scores(images, rgb, per_view, which=[2, 0])
+    assert _flat(pair) == pytest.approx(_whole_image_scores(scene, labels, [later[0], first[0]], images, render, views, ids,
+                                                     rgb, per_view))
+
+
+def test_fine_turns_render_only_the_new_poses():
+    scene, labels, T, images, render, ids, rgb = _setup()
+    calls = []
+
+    def counted(view, g, extra):
+        calls.append(view)
+        return render(view, g, extra)
+
+    choose_pose(scene, labels, 2, 1, [_turned(T, 6.0), _turned(T, 90.0)], images, counted, ids, rgb, 1.0, 20.0, 4,
+                fine_turns_deg=(-6.0, -3.0, 3.0, 6.0), up=UP, centre=CENTRE_2)
+    # 2 candidates and 4 turns of each of the 2 leading poses, each rendered once in each of the 4 views
+    assert len(calls) == (2 + 2 * 4) * 4
 
 
 def test_colour_fit_undoes_a_per_channel_gain_but_cannot_flatten_a_prediction_to_the_mean():

@@ -20,7 +20,7 @@ from torch import Tensor
 from splatreplace_ns.poses.candidates import yaw_rotation
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.errors import geodesic_deg
-from splatreplace_ns.poses.evidence import RenderFn, explain_scores, instance_views
+from splatreplace_ns.poses.evidence import PlacedRenders, RenderFn, instance_views
 
 
 def choose_candidate(
@@ -174,8 +174,9 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
     poses = [transforms[j] for j in unique]  # instance → template, one per distinct pose
     origin = list(range(len(unique)))  # which distinct candidate each pose turns
     turns = [0.0] * len(unique)
-    own, pose_scores, pixels = explain_scores(scene, labels, instance, anchor, [torch.linalg.inv(T) for T in poses],
-                                              images, render, views, id_maps, rgb_before, per_view)
+    placed = PlacedRenders(scene, labels, instance, anchor, render, views, id_maps)  # each pose rendered once
+    placed.add([torch.linalg.inv(T) for T in poses])
+    own, pose_scores, pixels = placed.scores(images, rgb_before, per_view)
     if fine_turns_deg and up is not None and centre is not None:
         up_t = torch.as_tensor(up, dtype=torch.float32)
         pivot = torch.as_tensor(centre, dtype=torch.float32).cpu()
@@ -184,18 +185,16 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
                 poses.append(poses[u] @ yaw_rotation(up_t, math.radians(deg), pivot))
                 origin.append(u)
                 turns.append(float(deg))
+        placed.add([torch.linalg.inv(T) for T in poses[len(placed.poses):]])
         # scored again, all together: the compared pixels are every pose's footprint, the same for all
-        own, pose_scores, pixels = explain_scores(scene, labels, instance, anchor, [torch.linalg.inv(T) for T in poses],
-                                                  images, render, views, id_maps, rgb_before, per_view)
+        own, pose_scores, pixels = placed.scores(images, rgb_before, per_view)
     scores = [pose_scores[u] for u in same_as]
     best, rival_pose, accepted = pick_with_margin(pose_scores, poses, margin_db, rival_deg)
     chosen = unique[origin[best]]
     rival = None if rival_pose is None else unique[origin[rival_pose]]
     pair = None
     if rival_pose is not None and margin_pixels == "pair":
-        _, pair_list, _ = explain_scores(scene, labels, instance, anchor,
-                                         [torch.linalg.inv(poses[best]), torch.linalg.inv(poses[rival_pose])],
-                                         images, render, views, id_maps, rgb_before, per_view)
+        _, pair_list, _ = placed.scores(images, rgb_before, per_view, which=[best, rival_pose])
         pair = (pair_list[0], pair_list[1])
         accepted = pair[0] - pair[1] >= margin_db
     choice = PoseChoice(instance, anchor, chosen, rival, own, scores, len(views), pixels, accepted, "", pair,

@@ -9,7 +9,7 @@ training views that show the instance most. :mod:`splatreplace_ns.poses.decision
 from __future__ import annotations
 
 import math
-from typing import Callable, Dict, List, Mapping, Sequence, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -136,6 +136,110 @@ def instance_views(id_maps: Mapping[int, Tensor], instance: int, max_views: int,
     return [v for v in sorted(counts, key=counts.get, reverse=True) if counts[v] >= min_pixels][:max_views]
 
 
+class PlacedRenders:
+    """The template instance ``anchor`` placed under poses in instance ``instance``'s place, with the rest of the
+    scene around it, rendered into ``views``: each pose is rendered once, and scored with any set of the poses
+    rendered so far (:meth:`scores`), so that a choice in passes renders no pose twice.
+
+    Per view only a box is kept: the instance's pixels and every placed copy's, widened by a quarter of its size
+    (at least 4 px). A pose whose copy reaches outside the box widens it, and the poses kept before are rendered
+    again in that view, so the scores are those of full renders.
+
+    Args:
+        scene: Gaussians (N) with GAUSSIAN_KEYS; labels: [N] long instance ids.
+        views: the view indices to compare; id_maps: from :func:`instance_id_maps`.
+    """
+
+    def __init__(self, scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, render: RenderFn,
+                 views: Sequence[int], id_maps: Mapping[int, Tensor]) -> None:
+        self.instance, self.render, self.views = instance, render, list(views)
+        self.rest = subset(scene, labels != instance)
+        self.template = subset(scene, labels == anchor)
+        marker = torch.cat((torch.zeros(len(self.rest["means"]), 1), torch.ones(len(self.template["means"]), 1)))
+        self.marker = marker.to(scene["means"])
+        self.own = {v: id_maps[v] == instance for v in self.views}  # [H, W] bool, full size
+        self.boxes: Dict[int, Tuple[int, int, int, int]] = {v: _box(self.own[v]) for v in self.views}
+        self.poses: List[Tensor] = []
+        self.crops: List[Dict[int, Tuple[Tensor, Tensor]]] = []  # per pose, per view: rgb [h, w, 3], covered [h, w]
+        self.renders = 0
+
+    def _render(self, pose: Tensor, v: int) -> Tuple[Tensor, Tensor]:
+        self.renders += 1
+        rgb, weight = self.render(v, _cat(self.rest, _placed(self.template, pose)), self.marker)
+        return rgb, weight[..., 0] >= 0.5
+
+    def add(self, poses: Sequence[Tensor]) -> None:
+        """Renders each pose (template → instance, [4, 4]) in every view and keeps it."""
+        for pose in poses:
+            crops: Dict[int, Tuple[Tensor, Tensor]] = {}
+            for v in self.views:
+                rgb, covered = self._render(pose, v)
+                box = self.boxes[v]
+                if covered.any() and not _inside(_box(covered, widen=False), box):
+                    box = self.boxes[v] = _union_box(box, _box(covered), covered.shape)
+                    for k, kept in enumerate(self.poses):  # the kept crops lack the new pixels: render them again
+                        self.crops[k][v] = _crop(self._render(kept, v), box)
+                crops[v] = _crop((rgb, covered), box)
+            self.poses.append(pose)
+            self.crops.append(crops)
+
+    def scores(self, images: Sequence[Tensor], rgb_before: Mapping[int, Tensor], per_view: bool = False,
+               which: Optional[Sequence[int]] = None) -> Tuple[float, List[float], int]:
+        """How well the own Gaussians and each pose in ``which`` (indices into the poses added; all by default)
+        explain the instance's training pixels: those the instance covers in the scene as it is, or any of those
+        poses' copies covers, the same for every pose. See :func:`explain_scores`.
+
+        Returns:
+            (PSNR by the own Gaussians, [PSNR under each pose of ``which``], number of compared pixels).
+        """
+        which = list(range(len(self.poses))) if which is None else list(which)
+        own_px: List[Tensor] = []
+        target_px: List[Tensor] = []
+        cand_px: List[List[Tensor]] = [[] for _ in which]
+        for v in self.views:
+            y0, y1, x0, x1 = self.boxes[v]
+            footprint = self.own[v][y0:y1, x0:x1]
+            for k in which:
+                footprint = footprint | self.crops[k][v][1]
+            target = images[v][y0:y1, x0:x1, :3]  # an RGBA capture's alpha is not compared
+            target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
+            target_px.append(target[footprint])
+            own_px.append(rgb_before[v][y0:y1, x0:x1][footprint].float())
+            for slot, k in enumerate(which):
+                cand_px[slot].append(self.crops[k][v][0][footprint].float())
+        score = mean_view_psnr if per_view else pooled_psnr
+        return score(own_px, target_px), [score(px, target_px) for px in cand_px], int(sum(t.shape[0] for t in target_px))
+
+
+def _box(mask: Tensor, widen: bool = True) -> Tuple[int, int, int, int]:
+    """(y0, y1, x0, x1), the smallest box holding the True pixels of ``mask`` [H, W] (an empty mask: an empty box
+    at the origin), widened by a quarter of its size (at least 4 px) inside the image when ``widen``."""
+    H, W = mask.shape
+    rows, cols = torch.nonzero(mask.any(dim=1)), torch.nonzero(mask.any(dim=0))
+    if rows.numel() == 0:
+        return (0, 0, 0, 0)
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    if widen:
+        dy, dx = max(4, (y1 - y0) // 4), max(4, (x1 - x0) // 4)
+        y0, y1, x0, x1 = max(0, y0 - dy), min(H, y1 + dy), max(0, x0 - dx), min(W, x1 + dx)
+    return (y0, y1, x0, x1)
+
+
+def _inside(inner: Tuple[int, int, int, int], outer: Tuple[int, int, int, int]) -> bool:
+    return outer[0] <= inner[0] and inner[1] <= outer[1] and outer[2] <= inner[2] and inner[3] <= outer[3]
+
+
+def _union_box(a: Tuple[int, int, int, int], b: Tuple[int, int, int, int], shape) -> Tuple[int, int, int, int]:
+    if a[1] <= a[0] or a[3] <= a[2]:  # empty
+        return b
+    return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+
+
+def _crop(render: Tuple[Tensor, Tensor], box: Tuple[int, int, int, int]) -> Tuple[Tensor, Tensor]:
+    y0, y1, x0, x1 = box
+    return render[0][y0:y1, x0:x1], render[1][y0:y1, x0:x1]
+
+
 def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, poses: Sequence[Tensor],
                    images: Sequence[Tensor], render: RenderFn, views: Sequence[int], id_maps: Mapping[int, Tensor],
                    rgb_before: Mapping[int, Tensor], per_view: bool = False) -> Tuple[float, List[float], int]:
@@ -156,29 +260,9 @@ def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, a
     Returns:
         (PSNR by the own Gaussians, [PSNR under each pose], number of compared pixels).
     """
-    rest = subset(scene, labels != instance)
-    template = subset(scene, labels == anchor)
-    candidates = [_placed(template, p) for p in poses]
-    marker = torch.cat((torch.zeros(len(rest["means"]), 1), torch.ones(len(template["means"]), 1)))
-    marker = marker.to(scene["means"])
-    own_px: List[Tensor] = []
-    target_px: List[Tensor] = []
-    cand_px: List[List[Tensor]] = [[] for _ in candidates]
-    for v in views:
-        renders = [render(v, _cat(rest, c), marker) for c in candidates]
-        footprint = id_maps[v] == instance
-        for _, weight in renders:
-            footprint = footprint | (weight[..., 0] >= 0.5)
-        target = images[v][..., :3]  # an RGBA capture's alpha is not compared
-        target = (target.float() / 255.0 if target.dtype == torch.uint8 else target.float()).to(footprint.device)
-        target_px.append(target[footprint])
-        own_px.append(rgb_before[v][footprint].float())
-        for k, (rgb, _) in enumerate(renders):
-            cand_px[k].append(rgb[footprint].float())
-    target_all = torch.cat(target_px)
-    score = mean_view_psnr if per_view else pooled_psnr
-    own = score(own_px, target_px)
-    return own, [score(px, target_px) for px in cand_px], int(target_all.shape[0])
+    placed = PlacedRenders(scene, labels, instance, anchor, render, views, id_maps)
+    placed.add(poses)
+    return placed.scores(images, rgb_before, per_view)
 
 
 def pooled_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
