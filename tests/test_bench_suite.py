@@ -239,13 +239,15 @@ def test_registration_summary_splits_the_refusals_by_the_pose_they_refused():
         {"gt_id": 5, "success": False, "rotation_error_deg": 3.0, "proposed_rotation_error_deg": 91.0},
         {"gt_id": 6, "success": False, "rotation_error_deg": 2.0},  # no pose was proposed (no candidate)
     ]}
-    registration = {"1": {"success": True}, "4": {"success": False}, "5": {"success": False}, "6": {"success": False}}
+    registration = {"1": {"success": True, "check_after_finetune": {"revert": False}}, "4": {"success": False},
+                    "5": {"success": False, "check_after_finetune": {"revert": True}}, "6": {"success": False}}
     s = suite._registration_summary(report, registration)
-    assert s["wrong"] == [3] and s["failures"] == [4, 5, 6]
+    assert s["wrong"] == [3] and s["failures"] == [4, 5, 6] and s["reverted"] == [5]
     assert s["refused_right"] == [4] and s["refused_wrong"] == [5]
     rows = [{**_row(0, 1.0, 1.0, {}), "registration": s}, _row(1, 0.0, 0.0, {}, failures=[7])]
     total = summarise(rows)
     assert total["failed_registrations"] == 4 and total["refused_right"] == 1 and total["refused_wrong"] == 1
+    assert total["reverted"] == 1
 
 
 def test_the_users_regime_end_to_end(tmp_path):

@@ -156,9 +156,11 @@ def _registration_summary(report: Optional[Dict], model_registration: Dict) -> D
     """Mean and max rotation error of the accepted registrations, failures (not accepted) and wrong ones
     (accepted but more than WRONG_POSE_DEG off)."""
     failures = sorted(int(k) for k, v in model_registration.items() if not v["success"])
+    # put back by the check after fine-tuning (also among the failures)
+    reverted = sorted(int(k) for k, v in model_registration.items() if (v.get("check_after_finetune") or {}).get("revert"))
     if not report:
         return {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": failures, "wrong": [],
-                "per_instance": []}
+                "reverted": reverted, "per_instance": []}
     rows = [r for r in report["per_instance"] if r["success"]]
     errors = [r["rotation_error_deg"] for r in rows if r["rotation_error_deg"] is not None]
     refused = [r for r in report["per_instance"] if not r["success"] and r.get("proposed_rotation_error_deg") is not None]
@@ -166,6 +168,7 @@ def _registration_summary(report: Optional[Dict], model_registration: Dict) -> D
         "rotation_error_deg_mean": statistics.fmean(errors) if errors else None,
         "rotation_error_deg_max": max(errors) if errors else None,
         "failures": failures,
+        "reverted": reverted,
         "wrong": [r["gt_id"] for r in rows if r["rotation_error_deg"] is not None and r["rotation_error_deg"] > WRONG_POSE_DEG],
         # what the acceptance test refused: poses within WRONG_POSE_DEG of the truth, and the others
         "refused_right": [r["gt_id"] for r in refused if r["proposed_rotation_error_deg"] <= WRONG_POSE_DEG],
@@ -293,6 +296,7 @@ def summarise(rows: List[Dict]) -> Dict:
         "failed_registrations": sum(len(r["registration"]["failures"]) for r in rows),
         "refused_right": sum(len(r["registration"].get("refused_right", [])) for r in rows),
         "refused_wrong": sum(len(r["registration"].get("refused_wrong", [])) for r in rows),
+        "reverted": sum(len(r["registration"].get("reverted", [])) for r in rows),
         "coverage_gain_mean": mean_coverage_gains([r.get("coverage") for r in rows]),
         "coverage_sharp_gain_mean": mean_coverage_gains([(r.get("coverage") or {}).get("sharp") for r in rows]),
         "segmentation_miou_mean": statistics.fmean(m) if (m := [r["segmentation_miou"] for r in rows

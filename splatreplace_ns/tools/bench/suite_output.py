@@ -67,7 +67,8 @@ def print_suite(result: Dict) -> None:
         f"of {s['scenes']} scenes; full-image gain mean {_fmt(s['gain_full_mean'], signed=True)} dB, worst "
         f"{_fmt(s['gain_full_worst'], signed=True)} dB; instances losing > 1 dB: {len(s['instances_losing_over_1db'])}; "
         f"registrations not accepted {s['failed_registrations']} (of them within {WRONG_POSE_DEG:.0f}° of the truth "
-        f"{s.get('refused_right', 0)}, further {s.get('refused_wrong', 0)}), accepted wrong (> {WRONG_POSE_DEG:.0f}°) "
+        f"{s.get('refused_right', 0)}, further {s.get('refused_wrong', 0)}; put back by the check after fine-tuning "
+        f"{s.get('reverted', 0)}), accepted wrong (> {WRONG_POSE_DEG:.0f}°) "
         f"{s['wrong_registrations']}; {result['time_s'] / 60:.0f} min in all"
     )
     gains = s.get("coverage_gain_mean") or {}
