@@ -74,6 +74,52 @@ def classify(rows: Sequence[Mapping]) -> Dict[str, int]:
     return counts
 
 
+EVIDENCE = ("margin_db", "over_own_db", "fitness", "colour", "inliers", "views", "pixels", "distinct_poses")
+"""What the choice knows about an instance's chosen pose, without the truth: its image margin over the best rival,
+how much better than the instance's own Gaussians it explains the pixels, the chosen candidate's ICP fitness,
+colour agreement and PnP inliers, the views and pixels compared, and how many distinct poses were compared."""
+
+
+def evidence(entry: Mapping) -> Optional[Dict[str, Optional[float]]]:
+    """The :data:`EVIDENCE` of one registration entry's image choice (None where nothing was chosen)."""
+    choice = entry.get("image_choice") or {}
+    if choice.get("chosen") is None:
+        return None
+    candidate = entry["candidates"][choice["chosen"]]
+    chosen = choice.get("chosen_score")
+    own = choice.get("psnr_own")
+    return {"margin_db": choice.get("margin_db"),
+            "over_own_db": None if chosen is None or own is None else chosen - own,
+            "fitness": candidate.get("fitness"), "colour": candidate.get("colour"), "inliers": candidate.get("inliers"),
+            "views": choice.get("views"), "pixels": choice.get("pixels"),
+            "distinct_poses": len({round(float(x), 6) for x in choice.get("scores") or [] if x is not None})}
+
+
+def separation(rows: Sequence[Mapping]) -> Dict[str, Dict]:
+    """How well each piece of evidence separates right chosen poses (within WRONG_POSE_DEG of the truth) from wrong
+    ones, over non-template instances with a chosen pose: per feature the area under the ROC curve (the chance that
+    a right pose scores higher than a wrong one; 0.5 is no separation, ties count half) and both groups' medians."""
+    import statistics
+
+    chosen = [r for r in rows if not r["template"] and r.get("evidence") and r.get("proposed_rotation_error_deg") is not None]
+    right = [r for r in chosen if r["proposed_rotation_error_deg"] <= WRONG_POSE_DEG]
+    wrong = [r for r in chosen if r["proposed_rotation_error_deg"] > WRONG_POSE_DEG]
+    out = {}
+    for name in EVIDENCE:
+        # no rival at all (margin None with a chosen pose) counts as the largest margin
+        def value(r):
+            v = r["evidence"].get(name)
+            return float("inf") if v is None and name == "margin_db" else v
+        a = [value(r) for r in right if value(r) is not None]
+        b = [value(r) for r in wrong if value(r) is not None]
+        pairs = [(x > y) + 0.5 * (x == y) for x in a for y in b]
+        finite = lambda xs: [x for x in xs if x != float("inf")]  # noqa: E731
+        out[name] = {"auc": sum(pairs) / len(pairs) if pairs else None, "right": len(a), "wrong": len(b),
+                     "median_right": statistics.median(finite(a)) if finite(a) else None,
+                     "median_wrong": statistics.median(finite(b)) if finite(b) else None}
+    return out
+
+
 def _scene_runs(seed: int, res: str):
     """(data folder, checkpoint folder) of the defaults' suite run of dev seed ``seed``."""
     from splatreplace_ns.tools.bench.suite import BenchSuiteConfig, run_folder, scene_name
@@ -124,7 +170,8 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
         rows = [{"instance": r["instance"], "success": r["success"], "rotation_error_deg": r["rotation_error_deg"],
                  "proposed_rotation_error_deg": r.get("proposed_rotation_error_deg"),
                  "template": int(model.registration[r["instance"]]["template"]) == int(r["instance"]),
-                 "margin_db": (model.registration[r["instance"]].get("image_choice") or {}).get("margin_db")}
+                 "margin_db": (model.registration[r["instance"]].get("image_choice") or {}).get("margin_db"),
+                 "evidence": evidence(model.registration[r["instance"]])}
                 for r in report["per_instance"]]
         out[name] = {**classify(rows), "time_s": seconds, "per_instance": rows}
     return out
@@ -139,6 +186,17 @@ def table(result: Dict) -> None:
         times = [result["scenes"][str(s)][name]["time_s"] for s in result["parameters"]["seeds"]]
         print(f"| {name} | " + " | ".join(str(totals[c]) for c in COUNTS)
               + f" | {sum(times) / len(times):.0f} ({min(times):.0f}–{max(times):.0f}) |")
+
+
+def separation_table(result: Dict) -> None:
+    variant = "defaults" if "defaults" in result["separation"] else next(iter(result["separation"]))
+    print(f"\nEvidence against the truth ({variant}; AUC 0.5 = no separation, 1 = right poses always score higher):")
+    print("| evidence | AUC | right / wrong | median, right | median, wrong |")
+    print("| --- | ---: | --- | ---: | ---: |")
+    fmt = lambda v: "–" if v is None else f"{v:.2f}"  # noqa: E731
+    for name, row in result["separation"][variant].items():
+        print(f"| {name} | {fmt(row['auc'])} | {row['right']} / {row['wrong']} | {fmt(row['median_right'])} | "
+              f"{fmt(row['median_wrong'])} |")
 
 
 def main(cfg: BenchPoseChoiceConfig) -> Dict:
@@ -157,7 +215,10 @@ def main(cfg: BenchPoseChoiceConfig) -> Dict:
     result = {"parameters": {"seeds": list(cfg.seeds), "res": cfg.res, "variants": list(cfg.variants),
                              "settings": {v: VARIANTS[v] for v in cfg.variants}, "wrong_pose_deg": WRONG_POSE_DEG},
               "totals": totals, "scenes": scenes}
+    result["separation"] = {name: separation([row for s in cfg.seeds for row in scenes[str(s)][name]["per_instance"]])
+                            for name in cfg.variants}
     table(result)
+    separation_table(result)
     write_result_json(result, cfg.out)
     return result
 

@@ -36,3 +36,26 @@ def test_every_variant_is_a_valid_registration_config_and_a_typo_is_refused(benc
         RegistrationConfig(image_margin_pixels="both")
     with pytest.raises(SystemExit, match="unknown variants"):
         bench.main(bench.BenchPoseChoiceConfig(seeds=(0,), variants=("nonsense",)))
+
+
+def test_evidence_is_read_from_the_image_choice_and_its_separation_is_an_auc(bench):
+    entry = {"image_choice": {"chosen": 1, "margin_db": 0.8, "chosen_score": 21.0, "psnr_own": 20.5, "views": 6,
+                              "pixels": 900, "scores": [19.0, 21.0, 21.0, None]},
+             "candidates": [{"fitness": 0.1, "colour": 0.1, "inliers": 3}, {"fitness": 0.5, "colour": 0.4, "inliers": 9}]}
+    e = bench.evidence(entry)
+    assert e["margin_db"] == 0.8 and e["over_own_db"] == pytest.approx(0.5) and e["fitness"] == 0.5
+    assert e["inliers"] == 9 and e["distinct_poses"] == 2
+    assert bench.evidence({"image_choice": {"chosen": None}, "candidates": []}) is None
+
+    def row(proposed, margin, fitness, template=False):
+        return {**_row(False, proposed=proposed, template=template),
+                "evidence": {**dict.fromkeys(bench.EVIDENCE, 1.0), "margin_db": margin, "fitness": fitness}}
+
+    rows = [row(1.0, 2.0, 0.5), row(2.0, None, 0.5),  # right poses: a margin of 2 dB and no rival at all
+            row(90.0, 0.5, 0.5), row(180.0, 3.0, 0.5),  # wrong ones
+            row(179.0, 0.1, 0.9, template=True), {**_row(False, proposed=None), "evidence": None}]  # left out
+    sep = bench.separation(rows)
+    # right over wrong: (2 > 0.5) + (2 < 3) + (inf > 0.5) + (inf > 3) = 3 of 4 pairs
+    assert sep["margin_db"]["auc"] == pytest.approx(0.75) and (sep["margin_db"]["right"], sep["margin_db"]["wrong"]) == (2, 2)
+    assert sep["fitness"]["auc"] == pytest.approx(0.5)  # all tied: no separation
+    assert sep["margin_db"]["median_right"] == 2.0 and sep["margin_db"]["median_wrong"] == pytest.approx(1.75)
