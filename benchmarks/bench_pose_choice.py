@@ -74,14 +74,56 @@ def classify(rows: Sequence[Mapping]) -> Dict[str, int]:
     return counts
 
 
-EVIDENCE = ("margin_db", "over_own_db", "fitness", "colour", "inliers", "views", "pixels", "distinct_poses")
+EVIDENCE = ("margin_db", "over_own_db", "fitness", "colour", "inliers", "views", "pixels", "distinct_poses",
+            "class_fitness", "class_colour")
 """What the choice knows about an instance's chosen pose, without the truth: its image margin over the best rival,
 how much better than the instance's own Gaussians it explains the pixels, the chosen candidate's ICP fitness,
-colour agreement and PnP inliers, the views and pixels compared, and how many distinct poses were compared."""
+colour agreement and PnP inliers, the views and pixels compared, how many distinct poses were compared, and how
+well it agrees with the class's other copies under their chosen poses (:func:`class_agreement`)."""
 
 
-def evidence(entry: Mapping) -> Optional[Dict[str, Optional[float]]]:
-    """The :data:`EVIDENCE` of one registration entry's image choice (None where nothing was chosen)."""
+def class_agreement(instances: Mapping, registration: Mapping, classes: Mapping[int, str], cfg) -> Dict[int, Dict]:
+    """Consistency across copies: each copy i with a chosen pose T_i (template ≈ T_i · i) placed on every other copy
+    j of its class with a chosen pose (the template with the identity) by T_j⁻¹ · T_i, and scored there as
+    registration scores a candidate on the template (ICP fitness and colour agreement of the solid centres). A copy
+    turned wrongly against the template is turned wrongly against every rightly placed copy too, which may be seen
+    from other sides than the template. → {instance id: {"class_fitness", "class_colour"}: means over the others}.
+    """
+    import numpy as np
+
+    from splatreplace_ns.poses.evidence import base_rgb, colour_agreement, fitness
+    from splatreplace_ns.poses.instance import instance_sphere
+
+    posed = {}
+    for iid, entry in registration.items():
+        iid = int(iid)
+        if int(entry["template"]) == iid:
+            posed[iid] = np.eye(4)
+        elif entry.get("proposed_transform") is not None and (entry.get("image_choice") or {}).get("chosen") is not None:
+            posed[iid] = np.asarray(entry["proposed_transform"], dtype=np.float64)
+    solid = {}
+    for iid in posed:
+        inst = instances[iid]
+        keep = inst.solid(cfg.min_opacity, cfg.min_solid_points)
+        solid[iid] = (inst.centres()[keep], base_rgb(inst)[keep], instance_sphere(inst)[1])
+    out = {}
+    for i in posed:
+        others = [j for j in posed if j != i and classes.get(j) == classes.get(i)]
+        fits, colours = [], []
+        for j in others:
+            T = np.linalg.inv(posed[j]) @ posed[i]
+            (src, src_rgb, _), (tgt, tgt_rgb, radius) = solid[i], solid[j]
+            dist = cfg.icp_max_distance_rel * radius
+            fits.append(fitness(src, tgt, T, dist))
+            colours.append(colour_agreement(src, src_rgb, tgt, tgt_rgb, T, dist, cfg.color_tolerance))
+        out[i] = {"class_fitness": float(np.mean(fits)) if fits else None,
+                  "class_colour": float(np.mean(colours)) if colours else None}
+    return out
+
+
+def evidence(entry: Mapping, agreement: Optional[Mapping] = None) -> Optional[Dict[str, Optional[float]]]:
+    """The :data:`EVIDENCE` of one registration entry's image choice (None where nothing was chosen);
+    ``agreement``: the instance's :func:`class_agreement`."""
     choice = entry.get("image_choice") or {}
     if choice.get("chosen") is None:
         return None
@@ -92,7 +134,8 @@ def evidence(entry: Mapping) -> Optional[Dict[str, Optional[float]]]:
             "over_own_db": None if chosen is None or own is None else chosen - own,
             "fitness": candidate.get("fitness"), "colour": candidate.get("colour"), "inliers": candidate.get("inliers"),
             "views": choice.get("views"), "pixels": choice.get("pixels"),
-            "distinct_poses": len({round(float(x), 6) for x in choice.get("scores") or [] if x is not None})}
+            "distinct_poses": len({round(float(x), 6) for x in choice.get("scores") or [] if x is not None}),
+            **{k: (agreement or {}).get(k) for k in ("class_fitness", "class_colour")}}
 
 
 def separation(rows: Sequence[Mapping]) -> Dict[str, Dict]:
@@ -167,11 +210,13 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
         report, why = registration_report(pipeline, class_size)
         if report is None:
             raise RuntimeError(f"seed {seed}: {why}")
+        agreement = class_agreement(instances, model.registration, {int(i["id"]): i["class"] for i in model.instances},
+                                    registration)
         rows = [{"instance": r["instance"], "success": r["success"], "rotation_error_deg": r["rotation_error_deg"],
                  "proposed_rotation_error_deg": r.get("proposed_rotation_error_deg"),
                  "template": int(model.registration[r["instance"]]["template"]) == int(r["instance"]),
                  "margin_db": (model.registration[r["instance"]].get("image_choice") or {}).get("margin_db"),
-                 "evidence": evidence(model.registration[r["instance"]])}
+                 "evidence": evidence(model.registration[r["instance"]], agreement.get(int(r["instance"])))}
                 for r in report["per_instance"]]
         out[name] = {**classify(rows), "time_s": seconds, "per_instance": rows}
     return out
