@@ -75,7 +75,7 @@ def classify(rows: Sequence[Mapping]) -> Dict[str, int]:
 
 
 EVIDENCE = ("margin_db", "over_own_db", "fitness", "colour", "inliers", "views", "pixels", "distinct_poses",
-            "class_fitness", "class_colour")
+            "class_fitness", "class_colour", "class_colour_margin")
 """What the choice knows about an instance's chosen pose, without the truth: its image margin over the best rival,
 how much better than the instance's own Gaussians it explains the pixels, the chosen candidate's ICP fitness,
 colour agreement and PnP inliers, the views and pixels compared, how many distinct poses were compared, and how
@@ -87,9 +87,17 @@ def class_agreement(instances: Mapping, registration: Mapping, classes: Mapping[
     j of its class with a chosen pose (the template with the identity) by T_j⁻¹ · T_i, and scored there as
     registration scores a candidate on the template (ICP fitness and colour agreement of the solid centres). A copy
     turned wrongly against the template is turned wrongly against every rightly placed copy too, which may be seen
-    from other sides than the template. → {instance id: {"class_fitness", "class_colour"}: means over the others}.
+    from other sides than the template. ``class_colour_margin``: the colour agreement under the chosen pose less the
+    best under that pose turned by a quarter, a half or three quarters about the up axis through the copy (below 0:
+    the class agrees better with a turn of it). → {instance id: {"class_fitness", "class_colour",
+    "class_colour_margin"}: means over the others}.
     """
+    import math
+
     import numpy as np
+    import torch
+
+    from splatreplace_ns.poses.candidates import yaw_rotation
 
     from splatreplace_ns.poses.evidence import base_rgb, colour_agreement, fitness
     from splatreplace_ns.poses.instance import instance_sphere
@@ -106,18 +114,29 @@ def class_agreement(instances: Mapping, registration: Mapping, classes: Mapping[
         inst = instances[iid]
         keep = inst.solid(cfg.min_opacity, cfg.min_solid_points)
         solid[iid] = (inst.centres()[keep], base_rgb(inst)[keep], instance_sphere(inst)[1])
-    out = {}
-    for i in posed:
-        others = [j for j in posed if j != i and classes.get(j) == classes.get(i)]
+    up = torch.as_tensor(cfg.up_axis, dtype=torch.float64)
+
+    def agreement(i: int, T_i: np.ndarray, others) -> tuple:
         fits, colours = [], []
         for j in others:
-            T = np.linalg.inv(posed[j]) @ posed[i]
+            T = np.linalg.inv(posed[j]) @ T_i
             (src, src_rgb, _), (tgt, tgt_rgb, radius) = solid[i], solid[j]
             dist = cfg.icp_max_distance_rel * radius
             fits.append(fitness(src, tgt, T, dist))
             colours.append(colour_agreement(src, src_rgb, tgt, tgt_rgb, T, dist, cfg.color_tolerance))
-        out[i] = {"class_fitness": float(np.mean(fits)) if fits else None,
-                  "class_colour": float(np.mean(colours)) if colours else None}
+        return float(np.mean(fits)), float(np.mean(colours))
+
+    out = {}
+    for i in posed:
+        others = [j for j in posed if j != i and classes.get(j) == classes.get(i)]
+        if not others:
+            out[i] = dict.fromkeys(("class_fitness", "class_colour", "class_colour_margin"))
+            continue
+        fit, colour = agreement(i, posed[i], others)
+        centre = torch.as_tensor(solid[i][0].mean(axis=0) if len(solid[i][0]) else np.zeros(3))
+        turned = [agreement(i, posed[i] @ yaw_rotation(up, math.radians(deg), centre).numpy(), others)[1]
+                  for deg in (90.0, 180.0, 270.0)]
+        out[i] = {"class_fitness": fit, "class_colour": colour, "class_colour_margin": colour - max(turned)}
     return out
 
 

@@ -90,3 +90,5 @@ def test_class_agreement_places_each_copy_on_the_others_by_their_chosen_poses(be
     assert agreement[2]["class_colour"] > 0.45  # right on the template, wrong only against the flipped copy 3
     assert agreement[3]["class_colour"] < 0.1 and agreement[3]["class_fitness"] > 0.9  # the shape fits, not the colours
     assert agreement[1]["class_colour"] == pytest.approx(agreement[2]["class_colour"])
+    # turned by half a turn, copy 3 would agree with both others: its margin is below 0; copy 2's is not
+    assert agreement[3]["class_colour_margin"] < -0.5 and agreement[2]["class_colour_margin"] >= 0
