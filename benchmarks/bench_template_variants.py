@@ -11,6 +11,7 @@ the defaults' run of the scene, where it recorded them) and the fine-tuning time
     splatreplace bench suite --split dev --seeds S --res 96x72 --from-segmentation --oracle gt_instances \
         [--overrides PATH=VALUE] --json V_S.json
     python benchmarks/bench_template_variants.py V_*.json
+    python benchmarks/bench_template_variants.py benchmarks/runs/suite/*oracle-gt_instances/result.json   # or the runs
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ REFERENCE = "exact stages"
 @dataclass
 class BenchTemplateVariantsConfig:
     runs: Tuple[Path, ...]
-    """Suite JSONs run with --from-segmentation --oracle gt_instances (any scenes, any --overrides)."""
+    """Suite JSONs run with --from-segmentation --oracle gt_instances (any scenes, any --overrides), or the
+    result.json the suite keeps in each such run's folder."""
     runs_dir: Path = Path("benchmarks/runs/suite")
     """Where the suite kept each scene's runs (the defaults' result.json holds the baseline's coverage figures)."""
     out: Path = Path("benchmarks/results/template_variants_dev.json")
@@ -58,6 +60,8 @@ def collect(cfg: BenchTemplateVariantsConfig) -> Dict:
     cells: Dict[str, Dict[int, Dict]] = {}
     for path in cfg.runs:
         result = json.loads(Path(path).read_text())
+        if "configuration" in result:  # one scene's result.json in its run folder
+            result = {"parameters": result["configuration"], "scenes": [result["row"]]}
         if result["parameters"].get("oracle") != "gt_instances":
             raise ValueError(f"{path}: not run with --oracle gt_instances")
         for row in result["scenes"]:
