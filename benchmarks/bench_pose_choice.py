@@ -154,7 +154,7 @@ def evidence(entry: Mapping, agreement: Optional[Mapping] = None) -> Optional[Di
             "fitness": candidate.get("fitness"), "colour": candidate.get("colour"), "inliers": candidate.get("inliers"),
             "views": choice.get("views"), "pixels": choice.get("pixels"),
             "distinct_poses": len({round(float(x), 6) for x in choice.get("scores") or [] if x is not None}),
-            **{k: (agreement or {}).get(k) for k in ("class_fitness", "class_colour")}}
+            **{k: (agreement or {}).get(k) for k in EVIDENCE if k.startswith("class_")}}
 
 
 def separation(rows: Sequence[Mapping]) -> Dict[str, Dict]:

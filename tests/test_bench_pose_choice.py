@@ -46,6 +46,8 @@ def test_evidence_is_read_from_the_image_choice_and_its_separation_is_an_auc(ben
     assert e["margin_db"] == 0.8 and e["over_own_db"] == pytest.approx(0.5) and e["fitness"] == 0.5
     assert e["inliers"] == 9 and e["distinct_poses"] == 2
     assert bench.evidence({"image_choice": {"chosen": None}, "candidates": []}) is None
+    agreement = {"class_fitness": 0.7, "class_colour": 0.4, "class_colour_margin": -0.1}
+    assert {k: v for k, v in bench.evidence(entry, agreement).items() if k.startswith("class_")} == agreement
 
     def row(proposed, margin, fitness, template=False):
         return {**_row(False, proposed=proposed, template=template),
