@@ -15,7 +15,7 @@ from gsplat.strategy.ops import remove as remove_gaussians
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.template.build import build_templates
-from splatreplace_ns.template.revert import rebuild_templates, revert_instances, score_replaced_instances
+from splatreplace_ns.template.revert import revert_instances, score_replaced_instances
 from splatreplace_ns.template.world_shading import SHADING_TERMS
 
 
@@ -126,7 +126,6 @@ class FinetuneStage:
                                           self.config.revert)
         model.train(was_training)
         reverted = sorted(i for i, score in scores.items() if score.revert)
-        rebuilt_names: List[str] = []
         for iid, score in scores.items():
             entry = model.registration.get(iid, {})
             entry["check_after_finetune"] = score.as_dict()
@@ -138,16 +137,6 @@ class FinetuneStage:
             params = {name: p.detach() for name, p in model.gauss_params.items()}
             per_instance = torch.cat((model.instance_pose_delta.detach(), model.instance_colour_gain.detach()), dim=1)
             new_params, table, rows = revert_instances(params, model.instance_table, per_instance, own, reverted)
-            lost = model.instance_table.class_index[torch.isin(model.instance_table.ids, torch.tensor(reverted))]
-            rebuilt = sorted(set(lost.tolist()) & set(table.class_index.tolist()))
-            if self.config.revert.rebuild_templates and rebuilt:
-                transforms = {int(i): torch.as_tensor(model.registration[int(i)]["transform"], dtype=torch.float32)
-                              for i in table.ids.tolist()}
-                new_params = rebuild_templates(new_params, table, own, transforms, rebuilt, lam=model.config.template_mix,
-                                               merge=model.config.template_union == "merge",
-                                               merge_cells_per_radius=model.config.template_merge_cells)
-                rebuilt_names = [table.classes[c - 1] for c in rebuilt]
-                CONSOLE.log(f"templates of {rebuilt_names} built again without the copies put back")
             self._swap_parameters(new_params, rows[:, :6].contiguous(), rows[:, 6:].contiguous())
             model.instance_table = table
             model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
@@ -156,8 +145,7 @@ class FinetuneStage:
             self.selection_controls.show_selected(model.instances, self._not_replaced())
         model.own_gaussians = {}
         seconds = time.perf_counter() - start
-        self.registration_report["revert"] = {"time_s": seconds, "checked": sorted(scores), "reverted": reverted,
-                                              "templates_rebuilt": rebuilt_names}
+        self.registration_report["revert"] = {"time_s": seconds, "checked": sorted(scores), "reverted": reverted}
         self.registration_report.setdefault("failures", []).extend(reverted)
         CONSOLE.log(f"check after fine-tuning against the training images: {len(scores)} instances, "
                     f"{len(reverted)} put back as they were ({seconds:.1f} s)")

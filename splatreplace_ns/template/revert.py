@@ -12,7 +12,7 @@ see docs/deviations.md). The rest of the scene is the fine-tuned one in both ren
 
 :func:`revert_instances` then takes a reverted instance out of the instance table and puts its own Gaussians
 back in the background. The class template keeps what the instance's Gaussians brought to it when it was built
-(the other copies are unchanged), unless :func:`rebuild_templates` builds it again from the copies that remain.
+(the union is not rebuilt); the other copies are unchanged.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from splatreplace_ns.poses.evidence import GAUSSIAN_KEYS, RenderFn, psnr
-from splatreplace_ns.template.build import InstanceTable, build_templates
+from splatreplace_ns.template.build import InstanceTable
 
 
 @dataclass
@@ -42,10 +42,6 @@ class RevertGateConfig:
     """Training views compared per instance (those where it covers most pixels)."""
     min_pixels: int = 16
     """A view counts only where the instance covers at least this many pixels."""
-    rebuild_templates: bool = False
-    """Build the template of a class that lost a copy to the check again from its remaining copies' own Gaussians
-    (as registration placed them; their colour offsets start again at zero), so that a reverted copy's Gaussians
-    (a wrong pose's among them) no longer shape the template the others share. Off: they stay in it."""
     at_fraction: float = 0.5
     """The check runs once this fraction of fine-tuning is done (densification has stopped by then); a reverted
     instance's own Gaussians train with the background for the rest."""
@@ -226,50 +222,3 @@ def revert_instances(
         kept_in_background=sorted(set(table.kept_in_background) | set(ids)),
     )
     return out, kept_table, per_instance[keep_row.to(per_instance.device)]
-
-
-def rebuild_templates(
-    params: Mapping[str, Tensor],
-    table: InstanceTable,
-    own: Mapping[int, Mapping[str, Tensor]],
-    transforms: Mapping[int, Tensor],
-    classes: Sequence[int],
-    lam: float,
-    merge: bool,
-    merge_cells_per_radius: int,
-) -> Dict[str, Tensor]:
-    """The stored Gaussians with the templates of ``classes`` built again, as
-    :func:`splatreplace_ns.template.build.build_templates` builds them, from the own Gaussians of the copies the
-    table still places (after :func:`revert_instances`): a reverted copy no longer shapes its class's template.
-
-    Args:
-        params: stored Gaussians (N) with ``template_class`` [N, 1] and ``sh_offsets`` [N, S, K, 3].
-        table: the instance table after the reverts; own: {instance id: its own stored Gaussians, every key of
-            ``params`` but ``template_class`` and ``sh_offsets``}, for every instance the table places;
-        transforms: {instance id: [4, 4] (template ≈ T · instance, world)}, as registration accepted them.
-        classes: class indices (1-based) to build again; the rest as ``build_templates``.
-    Returns:
-        params [N', ...]: the other Gaussians unchanged, the rebuilt templates after them with zero offsets.
-    """
-    classes = sorted({int(c) for c in classes})
-    gauss_class = params["template_class"][:, 0].round().long()
-    drop = torch.isin(gauss_class, torch.tensor(classes, dtype=torch.long, device=gauss_class.device))
-    out = {k: v[~drop] for k, v in params.items()}
-    for c in classes:
-        members = [int(i) for i in table.ids[table.class_index == c].tolist()]
-        if not members:
-            continue
-        name = table.classes[c - 1]
-        part = {k: torch.cat([own[i][k] for i in members]) for k in own[members[0]]}
-        labels = torch.cat([torch.full((len(own[i]["means"]),), i, dtype=torch.long) for i in members])
-        built, _ = build_templates(part, labels, {i: name for i in members}, {i: transforms[i] for i in members},
-                                   {name: table.template_ids.get(c, members[0])}, lam=lam, merge=merge,
-                                   merge_cells_per_radius=merge_cells_per_radius)
-        n = len(built["means"])
-        built["template_class"] = torch.full((n, 1), float(c), dtype=out["template_class"].dtype)
-        offsets = out["sh_offsets"].new_zeros((n,) + tuple(out["sh_offsets"].shape[1:]))
-        if lam <= 0:  # as build_templates: every copy's offsets start from the Gaussian's colour
-            offsets[:] = built["sh_offsets"][:, :1].to(offsets)
-        built["sh_offsets"] = offsets
-        out = {k: torch.cat((out[k], built[k].to(out[k]))) for k in out}
-    return out
