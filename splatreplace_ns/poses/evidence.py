@@ -152,7 +152,7 @@ class PlacedRenders:
 
     def __init__(self, scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, render: RenderFn,
                  views: Sequence[int], id_maps: Mapping[int, Tensor]) -> None:
-        self.instance, self.render, self.views = instance, render, list(views)
+        self.render, self.views = render, list(views)
         self.rest = subset(scene, labels != instance)
         self.template = subset(scene, labels == anchor)
         marker = torch.cat((torch.zeros(len(self.rest["means"]), 1), torch.ones(len(self.template["means"]), 1)))
@@ -161,10 +161,8 @@ class PlacedRenders:
         self.boxes: Dict[int, Tuple[int, int, int, int]] = {v: _box(self.own[v]) for v in self.views}
         self.poses: List[Tensor] = []
         self.crops: List[Dict[int, Tuple[Tensor, Tensor]]] = []  # per pose, per view: rgb [h, w, 3], covered [h, w]
-        self.renders = 0
 
     def _render(self, pose: Tensor, v: int) -> Tuple[Tensor, Tensor]:
-        self.renders += 1
         rgb, weight = self.render(v, _cat(self.rest, _placed(self.template, pose)), self.marker)
         return rgb, weight[..., 0] >= 0.5
 
@@ -176,7 +174,7 @@ class PlacedRenders:
                 rgb, covered = self._render(pose, v)
                 box = self.boxes[v]
                 if covered.any() and not _inside(_box(covered, widen=False), box):
-                    box = self.boxes[v] = _union_box(box, _box(covered), covered.shape)
+                    box = self.boxes[v] = _union_box(box, _box(covered))
                     for k, kept in enumerate(self.poses):  # the kept crops lack the new pixels: render them again
                         self.crops[k][v] = _crop(self._render(kept, v), box)
                 crops[v] = _crop((rgb, covered), box)
@@ -229,7 +227,7 @@ def _inside(inner: Tuple[int, int, int, int], outer: Tuple[int, int, int, int]) 
     return outer[0] <= inner[0] and inner[1] <= outer[1] and outer[2] <= inner[2] and inner[3] <= outer[3]
 
 
-def _union_box(a: Tuple[int, int, int, int], b: Tuple[int, int, int, int], shape) -> Tuple[int, int, int, int]:
+def _union_box(a: Tuple[int, int, int, int], b: Tuple[int, int, int, int]) -> Tuple[int, int, int, int]:
     if a[1] <= a[0] or a[3] <= a[2]:  # empty
         return b
     return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
