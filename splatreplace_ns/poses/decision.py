@@ -2,7 +2,7 @@
 
 With the training images at hand (the method's pipeline, ``RegistrationConfig.image_choice``) :func:`choose_pose`
 decides: the candidate whose placed template explains the instance's training pixels best
-(:func:`splatreplace_ns.poses.evidence.explain_scores`), accepted only when every rival turned far from it explains
+(:class:`splatreplace_ns.poses.evidence.PlacedRenders`), accepted only when every rival turned far from it explains
 them clearly worse. Without images (registration on its own, e.g. ``splatreplace bench register``)
 :func:`choose_candidate` decides on the Gaussians' evidence and thresholds. :func:`leave_lone_copies` then leaves
 every class with a single registered copy as it was: it has nothing to share.
@@ -134,7 +134,7 @@ def choose_pose(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anch
                 centre: Optional[Tensor] = None, fine_poses: int = 2) -> PoseChoice:
     """Analysis by synthesis: each candidate pose of ``instance`` is judged by rendering the template instance
     ``anchor`` in its place, with the rest of the scene, into the training views that show the instance most, and
-    comparing with the training images (:func:`explain_scores`). The best-explaining candidate is chosen; it is
+    comparing with the training images (:class:`~splatreplace_ns.poses.evidence.PlacedRenders`). The best-explaining candidate is chosen; it is
     accepted only when no rival turned more than ``rival_deg`` from it explains the pixels within ``margin_db``
     (otherwise the pose is ambiguous and the instance stays as it was).
 

@@ -2,7 +2,7 @@
 colour), and how well the template placed under it explains the instance's pixels in the training images.
 
 Gaussians' evidence (:func:`fitness`, :func:`colour_agreement`) needs nothing but the two instances; the images'
-evidence (:func:`explain_scores`) renders the scene with the template placed in the instance's place into the
+evidence (:class:`PlacedRenders`) renders the scene with the template placed in the instance's place into the
 training views that show the instance most. :mod:`splatreplace_ns.poses.decision` turns either into a decision.
 """
 
@@ -185,7 +185,14 @@ class PlacedRenders:
                which: Optional[Sequence[int]] = None) -> Tuple[float, List[float], int]:
         """How well the own Gaussians and each pose in ``which`` (indices into the poses added; all by default)
         explain the instance's training pixels: those the instance covers in the scene as it is, or any of those
-        poses' copies covers, the same for every pose. See :func:`explain_scores`.
+        poses' copies covers (weight ≥ 0.5), the same for every pose. PSNR after a per-channel gain
+        (:func:`colour_fitted`) over all compared pixels (``per_view=False``), or per view and averaged over the
+        views (``per_view=True``: one view rendered badly under every pose does not outweigh the others, see
+        :func:`mean_view_psnr`).
+
+        Args:
+            images: training images [H, W, 3] (float in [0, 1] or uint8); rgb_before: from
+                :func:`instance_id_maps` (the scene's render).
 
         Returns:
             (PSNR by the own Gaussians, [PSNR under each pose of ``which``], number of compared pixels).
@@ -236,31 +243,6 @@ def _union_box(a: Tuple[int, int, int, int], b: Tuple[int, int, int, int]) -> Tu
 def _crop(render: Tuple[Tensor, Tensor], box: Tuple[int, int, int, int]) -> Tuple[Tensor, Tensor]:
     y0, y1, x0, x1 = box
     return render[0][y0:y1, x0:x1], render[1][y0:y1, x0:x1]
-
-
-def explain_scores(scene: Mapping[str, Tensor], labels: Tensor, instance: int, anchor: int, poses: Sequence[Tensor],
-                   images: Sequence[Tensor], render: RenderFn, views: Sequence[int], id_maps: Mapping[int, Tensor],
-                   rgb_before: Mapping[int, Tensor], per_view: bool = False) -> Tuple[float, List[float], int]:
-    """How well instance ``instance``'s training pixels are explained by its own Gaussians and by the template
-    instance ``anchor``'s Gaussians placed under each pose, with the rest of the scene around them.
-
-    The compared pixels are the same for every pose: those the instance covers in the scene as it is, or any
-    placed copy covers (weight ≥ 0.5), in ``views``. PSNR after a per-channel gain (:func:`colour_fitted`),
-    over all compared pixels (``per_view=False``), or per view and averaged over the views (``per_view=True``:
-    each view is one piece of evidence, so one view rendered badly under every pose does not outweigh the
-    others, see :func:`mean_view_psnr`).
-
-    Args:
-        scene: Gaussians (N) with GAUSSIAN_KEYS; labels: [N] long instance ids.
-        poses: each [4, 4], template → instance (world).
-        images: training images [H, W, 3] (float in [0, 1] or uint8); views: the view indices to compare.
-        id_maps, rgb_before: from :func:`instance_id_maps` (which instance each pixel shows, the scene's render).
-    Returns:
-        (PSNR by the own Gaussians, [PSNR under each pose], number of compared pixels).
-    """
-    placed = PlacedRenders(scene, labels, instance, anchor, render, views, id_maps)
-    placed.add(poses)
-    return placed.scores(images, rgb_before, per_view)
 
 
 def pooled_psnr(pred: Sequence[Tensor], target: Sequence[Tensor]) -> float:
