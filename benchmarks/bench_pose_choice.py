@@ -79,70 +79,13 @@ EVIDENCE = ("margin_db", "over_own_db", "fitness", "colour", "inliers", "views",
 """What the choice knows about an instance's chosen pose, without the truth: its image margin over the best rival,
 how much better than the instance's own Gaussians it explains the pixels, the chosen candidate's ICP fitness,
 colour agreement and PnP inliers, the views and pixels compared, how many distinct poses were compared, and how
-well it agrees with the class's other copies under their chosen poses (:func:`class_agreement`)."""
-
-
-def class_agreement(instances: Mapping, registration: Mapping, classes: Mapping[int, str], cfg) -> Dict[int, Dict]:
-    """Consistency across copies: each copy i with a chosen pose T_i (template ≈ T_i · i) placed on every other copy
-    j of its class with a chosen pose (the template with the identity) by T_j⁻¹ · T_i, and scored there as
-    registration scores a candidate on the template (ICP fitness and colour agreement of the solid centres). A copy
-    turned wrongly against the template is turned wrongly against every rightly placed copy too, which may be seen
-    from other sides than the template. ``class_colour_margin``: the colour agreement under the chosen pose less the
-    best under that pose turned by a quarter, a half or three quarters about the up axis through the copy (below 0:
-    the class agrees better with a turn of it). → {instance id: {"class_fitness", "class_colour",
-    "class_colour_margin"}: means over the others}.
-    """
-    import math
-
-    import numpy as np
-    import torch
-
-    from splatreplace_ns.poses.candidates import yaw_rotation
-
-    from splatreplace_ns.poses.evidence import base_rgb, colour_agreement, fitness
-    from splatreplace_ns.poses.instance import instance_sphere
-
-    posed = {}
-    for iid, entry in registration.items():
-        iid = int(iid)
-        if int(entry["template"]) == iid:
-            posed[iid] = np.eye(4)
-        elif entry.get("proposed_transform") is not None and (entry.get("image_choice") or {}).get("chosen") is not None:
-            posed[iid] = np.asarray(entry["proposed_transform"], dtype=np.float64)
-    solid = {}
-    for iid in posed:
-        inst = instances[iid]
-        keep = inst.solid(cfg.min_opacity, cfg.min_solid_points)
-        solid[iid] = (inst.centres()[keep], base_rgb(inst)[keep], instance_sphere(inst)[1])
-    up = torch.as_tensor(cfg.up_axis, dtype=torch.float64)
-
-    def agreement(i: int, T_i: np.ndarray, others) -> tuple:
-        fits, colours = [], []
-        for j in others:
-            T = np.linalg.inv(posed[j]) @ T_i
-            (src, src_rgb, _), (tgt, tgt_rgb, radius) = solid[i], solid[j]
-            dist = cfg.icp_max_distance_rel * radius
-            fits.append(fitness(src, tgt, T, dist))
-            colours.append(colour_agreement(src, src_rgb, tgt, tgt_rgb, T, dist, cfg.color_tolerance))
-        return float(np.mean(fits)), float(np.mean(colours))
-
-    out = {}
-    for i in posed:
-        others = [j for j in posed if j != i and classes.get(j) == classes.get(i)]
-        if not others:
-            out[i] = dict.fromkeys(("class_fitness", "class_colour", "class_colour_margin"))
-            continue
-        fit, colour = agreement(i, posed[i], others)
-        centre = torch.as_tensor(solid[i][0].mean(axis=0) if len(solid[i][0]) else np.zeros(3))
-        turned = [agreement(i, posed[i] @ yaw_rotation(up, math.radians(deg), centre).numpy(), others)[1]
-                  for deg in (90.0, 180.0, 270.0)]
-        out[i] = {"class_fitness": fit, "class_colour": colour, "class_colour_margin": colour - max(turned)}
-    return out
+well it agrees with the class's other copies under their chosen poses
+(:func:`splatreplace_ns.poses.class_evidence.class_agreement`)."""
 
 
 def evidence(entry: Mapping, agreement: Optional[Mapping] = None) -> Optional[Dict[str, Optional[float]]]:
     """The :data:`EVIDENCE` of one registration entry's image choice (None where nothing was chosen);
-    ``agreement``: the instance's :func:`class_agreement`."""
+    ``agreement``: the instance's :func:`~splatreplace_ns.poses.class_evidence.class_agreement`."""
     choice = entry.get("image_choice") or {}
     if choice.get("chosen") is None:
         return None
@@ -202,6 +145,7 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
     import torch
 
     from splatreplace_ns.eval.report import registration_report
+    from splatreplace_ns.poses.class_evidence import class_agreement
     from splatreplace_ns.tools.sim.scene import class_size
     from splatreplace_ns.method.train import make_trainer_config, setup_trainer
     from splatreplace_ns.poses.register import with_floor_up_axis
@@ -230,7 +174,7 @@ def run_scene(seed: int, res: str, variants: Sequence[str], scratch: Path) -> Di
         if report is None:
             raise RuntimeError(f"seed {seed}: {why}")
         agreement = class_agreement(instances, model.registration, {int(i["id"]): i["class"] for i in model.instances},
-                                    registration)
+                                    registration)  # choose_poses_by_images alone does not record it
         rows = [{"instance": r["instance"], "success": r["success"], "rotation_error_deg": r["rotation_error_deg"],
                  "proposed_rotation_error_deg": r.get("proposed_rotation_error_deg"),
                  "template": int(model.registration[r["instance"]]["template"]) == int(r["instance"]),

@@ -277,6 +277,8 @@ def replacement_report(model) -> Dict[str, Dict]:
         if "image_choice" in entry:
             row["pose_choice"] = {k: entry["image_choice"].get(k)
                                   for k in ("chosen", "rival", "margin_db", "psnr_own", "views", "accepted")}
+        if "class_agreement" in entry:  # how the chosen pose lays this copy on its class's other copies
+            row["class_agreement"] = dict(entry["class_agreement"])
         if "check_after_finetune" in entry:
             row["check_after_finetune"] = {k: entry["check_after_finetune"].get(k)
                                            for k in ("psnr_own", "psnr_replaced", "loss_db", "views", "revert")}

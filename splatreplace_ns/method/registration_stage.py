@@ -2,7 +2,8 @@
 
 In: the selected instances' Gaussians. Out: ``model.registration`` (per instance: template, pose, accepted or why
 not) and ``registration_report``. Registration is ``poses.register``; the choice of each pose against the training
-images is ``poses.candidates`` → ``poses.evidence`` → ``poses.decision``.
+images is ``poses.candidates`` → ``poses.evidence`` → ``poses.decision``; each chosen pose's agreement with its
+class's other copies is recorded beside it (``poses.class_evidence``).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import track
 
+from splatreplace_ns.poses.class_evidence import class_agreement
 from splatreplace_ns.poses.decision import choose_pose, leave_lone_copies, polish_explains_as_well
 from splatreplace_ns.poses.evidence import instance_id_maps
 from splatreplace_ns.poses.refine import polish_chosen
@@ -77,6 +79,8 @@ class RegistrationStage:
         choice_s = None
         if config.image_choice and config.select == "photometric":
             choice_s = self.choose_poses_by_images(instances, config)
+            for iid, agreement in class_agreement(instances, model.registration, classes, config).items():
+                model.registration[iid]["class_agreement"] = agreement
         alone = leave_lone_copies(model.registration, classes, config.min_class_copies)
         for iid in alone:
             CONSOLE.log(f"[bold yellow]{model.registration[iid]['message']}")

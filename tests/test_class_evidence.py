@@ -1,0 +1,84 @@
+"""poses/class_evidence.py: a copy's chosen pose judged against its class's other copies, against known poses."""
+
+import math
+
+import numpy as np
+import torch
+
+from splatreplace_ns.poses.candidates import yaw_rotation
+from splatreplace_ns.poses.class_evidence import CLASS_EVIDENCE, chosen_poses, class_agreement
+from splatreplace_ns.poses.config import RegistrationConfig
+from splatreplace_ns.poses.instance import InstanceGaussians
+
+
+def _template_points():
+    """A box of grid points (N, 3), mapped onto itself by a half turn about its vertical axis, whose colour is not:
+    red where x > 0, blue elsewhere, so that only colour tells a half-turn flip."""
+    axes = np.linspace(-0.5, 0.5, 10), np.linspace(-0.25, 0.25, 6), np.linspace(0.0, 0.6, 7)
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    rgb = np.where(pts[:, :1] > 0, [[0.9, 0.1, 0.1]], [[0.1, 0.1, 0.9]])
+    return pts, rgb
+
+
+def _copy(pts, rgb, world_from_template: np.ndarray, iid: int) -> InstanceGaussians:
+    """The template's points placed in the world by ``world_from_template`` [4, 4]."""
+    world = pts @ world_from_template[:3, :3].T + world_from_template[:3, 3]
+    n = len(pts)
+    return InstanceGaussians(means=world, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.02),
+                             opacities=np.ones(n), colors=rgb, id=iid)
+
+
+def _placement(yaw_deg: float, offset) -> np.ndarray:
+    T = yaw_rotation(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), math.radians(yaw_deg),
+                     torch.zeros(3, dtype=torch.float64)).numpy()
+    T[:3, 3] += offset
+    return T
+
+
+def _class_of_four(flip_copy: int = 0):
+    """Copies 1 (the template) to 4 of one class placed at known poses, and a registration whose chosen poses are the
+    true ones, except copy ``flip_copy``'s, which is turned by half a turn about its centre."""
+    pts, rgb = _template_points()
+    placements = {1: _placement(0, [0, 0, 0]), 2: _placement(40, [3, 0, 0]), 3: _placement(130, [0, 3, 0]),
+                  4: _placement(250, [3, 3, 0])}
+    instances = {i: _copy(pts, rgb, T, i) for i, T in placements.items()}
+    registration = {}
+    for i, T in placements.items():
+        pose = np.linalg.inv(T)  # template ≈ pose · copy
+        if i == flip_copy:
+            centre = torch.as_tensor(instances[i].centres().mean(axis=0))
+            pose = pose @ yaw_rotation(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), math.pi, centre).numpy()
+        registration[i] = {"template": 1, "proposed_transform": None if i == 1 else pose.tolist(),
+                           "image_choice": None if i == 1 else {"chosen": 0}}
+    return instances, registration
+
+
+def test_right_poses_agree_and_a_flip_is_told_by_colour():
+    cfg = RegistrationConfig(min_solid_points=10)
+    instances, registration = _class_of_four(flip_copy=3)
+    classes = {i: "box" for i in instances}
+    out = class_agreement(instances, registration, classes, cfg)
+    assert set(out) == {1, 2, 3, 4}
+    for i in (2, 4):  # right poses: every point lands on a point of each other copy, and (mostly) on its colour
+        assert out[i]["class_fitness"] > 0.95
+        assert out[i]["class_colour_margin"] > 0.3
+    # the flip fits the shape as well as a right pose, but the class's colours prefer its half turn
+    assert out[3]["class_fitness"] > 0.95
+    assert out[3]["class_colour_margin"] < 0.0
+    assert out[3]["class_colour"] < out[2]["class_colour"]
+
+
+def test_a_copy_alone_in_its_class_and_a_copy_with_no_chosen_pose():
+    cfg = RegistrationConfig(min_solid_points=10)
+    instances, registration = _class_of_four()
+    registration[4]["image_choice"] = {"chosen": None}  # seen in no view: nothing was chosen, nothing to judge
+    classes = {1: "box", 2: "box", 3: "chair", 4: "box"}
+    assert set(chosen_poses(registration)) == {1, 2, 3}
+    out = class_agreement(instances, registration, classes, cfg)
+    assert set(out) == {1, 2, 3}
+    assert out[3] == dict.fromkeys(CLASS_EVIDENCE)  # the only chair
+    assert out[1]["class_fitness"] > 0.95 and out[2]["class_fitness"] > 0.95
+
+
+def test_empty_registration():
+    assert class_agreement({}, {}, {}, RegistrationConfig()) == {}
