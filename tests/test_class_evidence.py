@@ -80,5 +80,19 @@ def test_a_copy_alone_in_its_class_and_a_copy_with_no_chosen_pose():
     assert out[1]["class_fitness"] > 0.95 and out[2]["class_fitness"] > 0.95
 
 
+def test_a_copy_of_a_handful_of_gaussians_and_an_empty_one_stay_finite():
+    cfg = RegistrationConfig(min_solid_points=10)
+    instances, registration = _class_of_four()
+    few = instances[2]
+    instances[2] = InstanceGaussians(few.means[:3], few.quats[:3], few.scales[:3], few.opacities[:3], few.colors[:3], id=2)
+    empty = instances[4]
+    instances[4] = InstanceGaussians(empty.means[:0], empty.quats[:0], empty.scales[:0], empty.opacities[:0],
+                                     empty.colors[:0], id=4)
+    out = class_agreement(instances, registration, {i: "box" for i in instances}, cfg)
+    assert set(out) == {1, 2, 3}  # the empty copy is not judged and judges nothing
+    assert all(v is not None and np.isfinite(v) for row in out.values() for v in row.values())
+    assert out[2]["class_fitness"] == 1.0  # its three points lie on the template's and on copy 3's
+
+
 def test_empty_registration():
     assert class_agreement({}, {}, {}, RegistrationConfig()) == {}

@@ -52,10 +52,11 @@ def class_agreement(instances: Mapping[int, InstanceGaussians], registration: Ma
     Returns:
         {instance id: {"class_fitness", "class_colour": means over the other copies; "class_colour_margin": that
         colour agreement less the best one under the pose turned by a quarter, a half or three quarters about
-        ``cfg.up_axis`` through the copy (below 0: the class agrees better with a turn of it)}}; None values for a
-        copy with no other posed copy in its class.
+        ``cfg.up_axis`` through the copy (below 0: the class agrees better with a turn of it)}} for every instance
+        with a pose and Gaussians; None values for a copy with no other such copy in its class.
     """
-    posed = chosen_poses(registration)
+    # an instance with no Gaussians has nothing to lay on the others (and no sphere to measure distances by)
+    posed = {i: T for i, T in chosen_poses(registration).items() if i in instances and instances[i].num_gaussians > 0}
     solid = {}
     for iid in posed:
         inst = instances[iid]
