@@ -7,7 +7,8 @@ fits a logistic regression (scikit-learn, standardised features, L2) leaving one
 scene's poses get probabilities from a fit on the other scenes. Reported per feature set: the held-out AUC, the
 held-out log loss against the base rate's (the share of right poses among the other scenes: a probability that
 does not beat it says nothing), and at each acceptance level how many right and wrong poses the held-out
-probabilities accept, beside what the defaults' margin rule accepted. No training, no rendering: seconds.
+probabilities accept, beside what the defaults' margin rule accepted. Then, per feature, a stricter rule judged the
+same way (:func:`strict_threshold`). No training, no rendering: seconds.
 
     python benchmarks/bench_pose_choice.py --seeds 0 1 2 3 4 5 6 7 8 --variants defaults --out C.json
     python benchmarks/fit_pose_probability.py --choice C.json     # -> benchmarks/results/pose_probability_dev.json
@@ -35,6 +36,7 @@ FEATURE_SETS: Tuple[Tuple[str, ...], ...] = (
     ("margin_db", "over_own_db", "colour", "pixels", "class_colour", "class_colour_margin"),
 )
 LEVELS = (0.5, 0.6, 0.7, 0.8, 0.9)
+STRICT_FEATURES = ("class_colour_margin", "class_colour", "colour", "over_own_db")
 
 
 @dataclass
@@ -129,6 +131,31 @@ def held_out(rows: Sequence[Mapping], features: Sequence[str], l2: float) -> Dic
                           "p_held_out": float(p[i])} for i in range(len(keep))]}
 
 
+def strict_threshold(rows: Sequence[Mapping], feature: str) -> Dict:
+    """A rule that adds to the margin rule's acceptances, judged leaving one scene out: on the other scenes, the
+    level of ``feature`` just above every wrong pose's; the held-out scene's poses at or above it are accepted too
+    (besides those the margin rule accepted). → counts of the margin rule alone and with the added rule."""
+    X, keep = feature_matrix(rows, (feature,))
+    x = X[:, 0]
+    y = np.array([rows[k]["right"] for k in keep], dtype=bool)
+    scenes = np.array([rows[k]["scene"] for k in keep])
+    margin_rule = np.array([rows[k]["accepted"] for k in keep], dtype=bool)
+    added = np.zeros(len(keep), dtype=bool)
+    levels = {}
+    for s in sorted(set(scenes.tolist())):
+        train = scenes != s
+        wrong = x[train & ~y]
+        level = float(np.nextafter(wrong.max(), np.inf)) if len(wrong) else float(x[train].min())
+        levels[str(s)] = level
+        added[~train] = x[~train] >= level
+    both = margin_rule | added
+    return {"feature": feature, "levels": levels,
+            "margin_rule": {"accepted_right": int((margin_rule & y).sum()), "accepted_wrong": int((margin_rule & ~y).sum())},
+            "with_rule": {"accepted_right": int((both & y).sum()), "accepted_wrong": int((both & ~y).sum())},
+            "added": [{"scene": int(scenes[i]), "instance": rows[keep[i]]["instance"], "right": bool(y[i])}
+                      for i in np.flatnonzero(added & ~margin_rule)]}
+
+
 def main(cfg: FitPoseProbabilityConfig) -> Dict:
     import json
 
@@ -146,9 +173,17 @@ def main(cfg: FitPoseProbabilityConfig) -> Dict:
         m = r["margin_rule"]
         print(f"| {' + '.join(r['features'])} | {r['poses']} | {fmt(r['auc'])} | {r['log_loss']:.3f} "
               f"({r['log_loss_base_rate']:.3f}) | " + " | ".join(cells) + f" | {m['accepted_right']} / {m['accepted_wrong']} |")
+    strict = [strict_threshold(rows, f) for f in STRICT_FEATURES]
+    print("\nAccepting also every pose above the level of the other scenes' most agreeing wrong pose (held out):")
+    print("| feature | margin rule: right / wrong | with it: right / wrong | added poses (scene/instance, right?) |")
+    print("| --- | --- | --- | --- |")
+    for r in strict:
+        added = ", ".join(f"{a['scene']}/{a['instance']}{'' if a['right'] else ' (wrong)'}" for a in r["added"]) or "–"
+        print(f"| {r['feature']} | {r['margin_rule']['accepted_right']} / {r['margin_rule']['accepted_wrong']} | "
+              f"{r['with_rule']['accepted_right']} / {r['with_rule']['accepted_wrong']} | {added} |")
     result = {"parameters": {"choice": cfg.choice.name, "variant": cfg.variant, "l2": cfg.l2,
                              "wrong_pose_deg": WRONG_POSE_DEG, "seeds": choice["parameters"]["seeds"]},
-              "feature_sets": results}
+              "feature_sets": results, "strict_threshold": strict}
     write_result_json(result, cfg.out)
     return result
 

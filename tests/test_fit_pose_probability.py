@@ -55,3 +55,23 @@ def test_auc_counts_ties_half(bench):
     assert bench.auc(np.array([0.5, 0.5]), y) == 0.5
     assert bench.auc(np.array([0.9, 0.1]), y) == 1.0
     assert bench.auc(np.array([0.9]), np.array([True])) is None
+
+
+def test_the_strict_rule_takes_its_level_from_the_other_scenes_wrong_poses(bench):
+    def row(scene, instance, right, accepted, value):
+        return {"scene": scene, "instance": instance, "right": right, "accepted": accepted,
+                "evidence": {"class_colour_margin": value}}
+
+    rows = [row(0, 1, False, False, 0.10), row(0, 2, True, False, 0.20), row(0, 3, True, True, 0.01),
+            row(1, 1, False, False, 0.05), row(1, 2, True, False, 0.08), row(1, 3, False, True, 0.30),
+            row(2, 1, True, False, 0.12)]
+    result = bench.strict_threshold(rows, "class_colour_margin")
+    # scene 0 held out: the other scenes' most agreeing wrong pose is scene 1's accepted one at 0.30
+    assert result["levels"]["0"] > 0.30 and result["levels"]["1"] > 0.10 and result["levels"]["2"] > 0.30
+    assert result["margin_rule"] == {"accepted_right": 1, "accepted_wrong": 1}
+    # only scene 1's right pose at 0.08 < 0.10 is not added; nothing in scenes 0 and 2 reaches 0.30
+    assert result["added"] == []
+    rows.append(row(1, 4, True, False, 0.15))  # above scene 0's wrong 0.10 and scene 2 has none: added, right
+    result = bench.strict_threshold(rows, "class_colour_margin")
+    assert result["added"] == [{"scene": 1, "instance": 4, "right": True}]
+    assert result["with_rule"] == {"accepted_right": 2, "accepted_wrong": 1}
