@@ -18,7 +18,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import track
 
 from splatreplace_ns.poses.class_evidence import class_agreement
-from splatreplace_ns.poses.decision import choose_pose, leave_lone_copies, polish_explains_as_well
+from splatreplace_ns.poses.decision import accept_by_class, choose_pose, leave_lone_copies, polish_explains_as_well
 from splatreplace_ns.poses.evidence import instance_id_maps
 from splatreplace_ns.poses.refine import polish_chosen
 from splatreplace_ns.poses.config import RegistrationConfig
@@ -79,8 +79,12 @@ class RegistrationStage:
         choice_s = None
         if config.image_choice and config.select == "photometric":
             choice_s = self.choose_poses_by_images(instances, config)
-            for iid, agreement in class_agreement(instances, model.registration, classes, config).items():
-                model.registration[iid]["class_agreement"] = agreement
+            agreement = class_agreement(instances, model.registration, classes, config)
+            for iid, row in agreement.items():
+                model.registration[iid]["class_agreement"] = row
+            if config.class_accept_level is not None:
+                for iid in accept_by_class(model.registration, agreement, config.class_accept_level):
+                    CONSOLE.log(model.registration[iid]["message"])
         alone = leave_lone_copies(model.registration, classes, config.min_class_copies)
         for iid in alone:
             CONSOLE.log(f"[bold yellow]{model.registration[iid]['message']}")
