@@ -36,6 +36,8 @@ FEATURE_SETS: Tuple[Tuple[str, ...], ...] = (
     ("margin_db", "over_own_db", "colour", "pixels", "class_colour", "class_colour_margin"),
 )
 LEVELS = (0.5, 0.6, 0.7, 0.8, 0.9)
+BINS = (0.0, 0.25, 0.5, 0.75, 1.0)
+"""Bins of held-out probability the calibration table compares with the share of right poses."""
 STRICT_FEATURES = ("class_colour_margin", "class_colour", "colour", "over_own_db")
 
 
@@ -126,6 +128,11 @@ def held_out(rows: Sequence[Mapping], features: Sequence[str], l2: float) -> Dic
             "auc": auc(p, y), "log_loss": log_loss(p, y), "log_loss_base_rate": log_loss(base, y),
             "levels": {str(level): {"accepted_right": int(((p >= level) & y).sum()),
                                     "accepted_wrong": int(((p >= level) & ~y).sum())} for level in LEVELS},
+            "calibration": [{"p_from": lo, "p_to": hi, "poses": int(m.sum()),
+                             "mean_p": float(p[m].mean()) if m.any() else None,
+                             "share_right": float(y[m].mean()) if m.any() else None}
+                            for lo, hi in zip(BINS[:-1], BINS[1:])
+                            for m in [(p >= lo) & ((p < hi) if hi < 1 else (p <= hi))]],
             "margin_rule": {"accepted_right": int((accepted & y).sum()), "accepted_wrong": int((accepted & ~y).sum())},
             "per_pose": [{"scene": int(scenes[i]), "instance": rows[keep[i]]["instance"], "right": bool(y[i]),
                           "p_held_out": float(p[i])} for i in range(len(keep))]}
@@ -156,6 +163,16 @@ def strict_threshold(rows: Sequence[Mapping], feature: str) -> Dict:
                       for i in np.flatnonzero(added & ~margin_rule)]}
 
 
+def final_fit(rows: Sequence[Mapping], features: Sequence[str], l2: float) -> Dict:
+    """The fit on every scene, in the features' own units: p = 1 / (1 + exp(-(intercept + Σ coef · x)))."""
+    X, keep = feature_matrix(rows, features)
+    y = np.array([rows[k]["right"] for k in keep], dtype=bool)
+    model, mean, sd = fit(X, y, l2)
+    coef = model.coef_[0] / sd
+    return {"features": list(features), "coef": coef.tolist(),
+            "intercept": float(model.intercept_[0] - (coef * mean).sum()), "poses": int(len(keep))}
+
+
 def main(cfg: FitPoseProbabilityConfig) -> Dict:
     import json
 
@@ -181,9 +198,17 @@ def main(cfg: FitPoseProbabilityConfig) -> Dict:
         added = ", ".join(f"{a['scene']}/{a['instance']}{'' if a['right'] else ' (wrong)'}" for a in r["added"]) or "–"
         print(f"| {r['feature']} | {r['margin_rule']['accepted_right']} / {r['margin_rule']['accepted_wrong']} | "
               f"{r['with_rule']['accepted_right']} / {r['with_rule']['accepted_wrong']} | {added} |")
+    best = min(results, key=lambda r: r["log_loss"])
+    shipped = final_fit(rows, best["features"], cfg.l2)
+    print(f"\nbest held-out log loss: {' + '.join(best['features'])}; fitted on all {shipped['poses']} poses: "
+          f"intercept {shipped['intercept']:.4f}, coef {[round(c, 4) for c in shipped['coef']]}")
+    print("| held-out p | poses | mean p | share right |")
+    print("| --- | ---: | ---: | ---: |")
+    for b in best["calibration"]:
+        print(f"| {b['p_from']:.2f}–{b['p_to']:.2f} | {b['poses']} | {fmt(b['mean_p'])} | {fmt(b['share_right'])} |")
     result = {"parameters": {"choice": cfg.choice.name, "variant": cfg.variant, "l2": cfg.l2,
                              "wrong_pose_deg": WRONG_POSE_DEG, "seeds": choice["parameters"]["seeds"]},
-              "feature_sets": results, "strict_threshold": strict}
+              "feature_sets": results, "strict_threshold": strict, "final_fit": shipped}
     write_result_json(result, cfg.out)
     return result
 

@@ -279,6 +279,8 @@ def replacement_report(model) -> Dict[str, Dict]:
                                   for k in ("chosen", "rival", "margin_db", "psnr_own", "views", "accepted")}
         if "class_agreement" in entry:  # how the chosen pose lays this copy on its class's other copies
             row["class_agreement"] = dict(entry["class_agreement"])
+        if "pose_probability" in entry:  # the chance the chosen pose is right (poses.pose_probability)
+            row["pose_probability"] = entry["pose_probability"]
         if "check_after_finetune" in entry:
             row["check_after_finetune"] = {k: entry["check_after_finetune"].get(k)
                                            for k in ("psnr_own", "psnr_replaced", "loss_db", "views", "revert")}

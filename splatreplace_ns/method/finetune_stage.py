@@ -52,7 +52,7 @@ class FinetuneStage:
             params, model.instance_labels, classes, transforms, templates, lam=model.config.template_mix,
             merge=model.config.template_union == "merge", merge_cells_per_radius=model.config.template_merge_cells,
         )
-        self.selection_controls.show_selected(model.instances, self._not_replaced())
+        self.selection_controls.show_selected(model.instances, self._not_replaced(), self._pose_probabilities())
         if len(table.ids) == 0:
             CONSOLE.log("[bold yellow]no registered instance: the scene is not replaced; fine-tuning the segmented scene")
             return
@@ -96,6 +96,11 @@ class FinetuneStage:
     def _not_replaced(self) -> List[int]:
         """Instances registration or its pose check left as they were."""
         return [int(i) for i, r in (getattr(self.model, "registration", None) or {}).items() if not r.get("success")]
+
+    def _pose_probabilities(self) -> Dict[int, float]:
+        """{instance id: the chance its chosen pose is right} where registration could tell one."""
+        return {int(i): r["pose_probability"] for i, r in (getattr(self.model, "registration", None) or {}).items()
+                if r.get("pose_probability") is not None}
 
     @torch.no_grad()
     def revert_harmful_replacements(self) -> List[int]:
@@ -142,7 +147,7 @@ class FinetuneStage:
             model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
             if model.finetune_strategy is not None:
                 model.finetune_strategy_state = model.finetune_strategy.initialize_state(scene_scale=1.0)
-            self.selection_controls.show_selected(model.instances, self._not_replaced())
+            self.selection_controls.show_selected(model.instances, self._not_replaced(), self._pose_probabilities())
         model.own_gaussians = {}
         seconds = time.perf_counter() - start
         self.registration_report["revert"] = {"time_s": seconds, "checked": sorted(scores), "reverted": reverted}

@@ -103,7 +103,8 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
     def load_pipeline(self, loaded_state: Dict, step: int) -> None:
         super().load_pipeline(loaded_state, step)
         if getattr(self.model, "instances", None):  # the viewer lists them instead of "waits for the segmentation"
-            self.selection_controls.show_selected(self.model.instances, self._not_replaced())
+            self.selection_controls.show_selected(self.model.instances, self._not_replaced(),
+                                                 self._pose_probabilities())
         if self.test_mode == "inference":  # ns-export / ns-render read plain Gaussians: give them the replaced scene
             self.model.bake_replaced_scene()
 

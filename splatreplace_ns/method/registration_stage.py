@@ -20,6 +20,7 @@ from rich.progress import track
 from splatreplace_ns.poses.class_evidence import class_agreement
 from splatreplace_ns.poses.decision import accept_by_class, choose_pose, leave_lone_copies, polish_explains_as_well
 from splatreplace_ns.poses.evidence import instance_id_maps
+from splatreplace_ns.poses.pose_probability import entry_probability
 from splatreplace_ns.poses.refine import polish_chosen
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.instance import InstanceGaussians
@@ -82,6 +83,8 @@ class RegistrationStage:
             agreement = class_agreement(instances, model.registration, classes, config)
             for iid, row in agreement.items():
                 model.registration[iid]["class_agreement"] = row
+            for entry in model.registration.values():
+                entry["pose_probability"] = entry_probability(entry)
             if config.class_accept_level is not None:
                 for iid in accept_by_class(model.registration, agreement, config.class_accept_level):
                     CONSOLE.log(model.registration[iid]["message"])

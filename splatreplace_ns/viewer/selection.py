@@ -37,18 +37,22 @@ class InstanceSelectionControls(ClickControls):
         return self._pipeline[0]
 
     @staticmethod
-    def _listing(items, not_replaced=()) -> str:
+    def _listing(items, not_replaced=(), pose_probability=None) -> str:
         # instances labelled otherwise than by clicks (ground truth) carry no Gaussian count
+        chance = pose_probability or {}
         return "; ".join(
             f"{i['id']}: {i.get('class', 'object')}" + (f" ({i['num_gaussians']} G)" if "num_gaussians" in i else "")
             + (" (not replaced)" if int(i["id"]) in not_replaced else "")
+            + (f" (pose right: {chance[int(i['id'])]:.0%})" if int(i["id"]) in chance else "")
             for i in items
         ) or "(none)"
 
-    def show_selected(self, instances, not_replaced=()) -> None:
+    def show_selected(self, instances, not_replaced=(), pose_probability=None) -> None:
         """A run loaded after its segmentation (``ns-viewer``, a resumed run), or after its registration: its
-        instances, listed, those left as they were (``not_replaced`` ids) marked."""
-        self.listing.value = self._listing(instances, {int(i) for i in not_replaced})
+        instances, listed, those left as they were (``not_replaced`` ids) marked, and with ``pose_probability``
+        ({id: p}) the chance each chosen pose is right (``splatreplace_ns.poses.pose_probability``)."""
+        self.listing.value = self._listing(instances, {int(i) for i in not_replaced},
+                                           {int(k): float(v) for k, v in (pose_probability or {}).items()})
         self._say(f"{len(instances)} instances were selected when this run was trained")
 
     def _refresh(self) -> None:
