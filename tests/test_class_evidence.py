@@ -97,21 +97,3 @@ def test_a_copy_of_a_handful_of_gaussians_and_an_empty_one_stay_finite():
 def test_empty_registration():
     assert class_agreement({}, {}, {}, RegistrationConfig()) == {}
 
-
-def test_accept_by_class_takes_the_ambiguous_right_pose_and_leaves_the_flip_and_the_accepted():
-    from splatreplace_ns.poses.decision import accept_by_class
-
-    cfg = RegistrationConfig(min_solid_points=10)
-    instances, registration = _class_of_four(flip_copy=3)
-    for i in (2, 3):  # the image margin left copies 2 and 3 ambiguous; it accepted copy 4
-        registration[i].update(success=False, transform=np.eye(4).tolist(), message=f"instance {i}: not replaced: x",
-                               image_choice={"chosen": 0, "accepted": False})
-    registration[4].update(success=True, transform=registration[4]["proposed_transform"], message="instance 4: y",
-                           image_choice={"chosen": 0, "accepted": True})
-    agreement = class_agreement(instances, registration, {i: "box" for i in instances}, cfg)
-    assert accept_by_class(registration, agreement, level=0.2) == [2]
-    assert registration[2]["success"] and registration[2]["transform"] == registration[2]["proposed_transform"]
-    assert registration[2]["message"].startswith("instance 2: x; accepted: its class's copies agree")
-    assert not registration[3]["success"]  # the flip: the class agrees better with its half turn
-    assert registration[4]["success"] and registration[4]["message"] == "instance 4: y"
-    assert accept_by_class(registration, agreement, level=0.9) == []  # above every copy's margin: nothing more

@@ -18,7 +18,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import track
 
 from splatreplace_ns.poses.class_evidence import class_agreement
-from splatreplace_ns.poses.decision import accept_by_class, choose_pose, leave_lone_copies, polish_explains_as_well
+from splatreplace_ns.poses.decision import choose_pose, leave_lone_copies, polish_explains_as_well
 from splatreplace_ns.poses.evidence import instance_id_maps
 from splatreplace_ns.poses.pose_probability import entry_probability
 from splatreplace_ns.poses.refine import polish_chosen
@@ -80,14 +80,10 @@ class RegistrationStage:
         choice_s = None
         if config.image_choice and config.select == "photometric":
             choice_s = self.choose_poses_by_images(instances, config)
-            agreement = class_agreement(instances, model.registration, classes, config)
-            for iid, row in agreement.items():
+            for iid, row in class_agreement(instances, model.registration, classes, config).items():
                 model.registration[iid]["class_agreement"] = row
             for entry in model.registration.values():
                 entry["pose_probability"] = entry_probability(entry)
-            if config.class_accept_level is not None:
-                for iid in accept_by_class(model.registration, agreement, config.class_accept_level):
-                    CONSOLE.log(model.registration[iid]["message"])
         alone = leave_lone_copies(model.registration, classes, config.min_class_copies)
         for iid in alone:
             CONSOLE.log(f"[bold yellow]{model.registration[iid]['message']}")

@@ -4,8 +4,10 @@ under theirs.
 A copy's own views judge its pose alone (:mod:`splatreplace_ns.poses.evidence`). A copy turned wrongly against the
 template is turned wrongly against every rightly placed copy too, and those may have been seen from other sides than
 the template: placing copy i on copy j by T_j⁻¹ · T_i (template ≈ T · copy) and scoring the fit there is evidence
-no single instance's views give. It is reported per instance (``ns-eval``'s ``replacement``); it does not decide
-(``docs/benchmarks.md``: across the dev scenes it does not separate right poses from wrong ones well enough).
+no single instance's views give. It is reported per instance (``ns-eval``'s ``replacement``, and through
+:mod:`splatreplace_ns.poses.pose_probability`); it does not decide (``docs/benchmarks.md``: across the dev scenes it
+does not separate right poses from wrong ones well enough, and accepting the poses it favours most was measured and
+deleted, ``docs/deviations.md``).
 """
 
 from __future__ import annotations

@@ -95,10 +95,6 @@ class RegistrationConfig:
         image_margin_pixels: where the margin between the chosen candidate and its rival is measured: "all": the
             pixels every candidate is ranked on (the instance's and any placed copy's), "pair": the instance's and
             those two copies' only (pixels of far-off candidates, where the two render alike, do not shrink it).
-        class_accept_level: a copy whose chosen pose the image margin left ambiguous is accepted all the same when,
-            under that pose, its class's other copies agree with its colours at least this much better than with
-            any quarter turn of it (``class_colour_margin``, :mod:`splatreplace_ns.poses.class_evidence`); None:
-            off. See docs/deviations.md for the level and what it was measured to do.
         min_class_copies: a class is replaced only when at least this many of its copies (its template copy
             included) are registered: a copy alone has no other to borrow from, and replacing it can only lose
             (1: every registered instance is replaced, as in the paper).
@@ -145,7 +141,6 @@ class RegistrationConfig:
     image_fine_poses: int = 2
     image_score: Literal["pooled", "per_view"] = "pooled"
     image_margin_pixels: Literal["all", "pair"] = "all"
-    class_accept_level: Optional[float] = None
     min_class_copies: int = 2
 
     def __post_init__(self) -> None:

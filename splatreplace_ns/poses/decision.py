@@ -3,8 +3,7 @@
 With the training images at hand (the method's pipeline, ``RegistrationConfig.image_choice``) :func:`choose_pose`
 decides: the candidate whose placed template explains the instance's training pixels best
 (:class:`splatreplace_ns.poses.evidence.PlacedRenders`), accepted only when every rival turned far from it explains
-them clearly worse, or (:func:`accept_by_class`, off by default) when the class's other copies agree with it clearly
-better than with its turns. Without images (registration on its own, e.g. ``splatreplace bench register``)
+them clearly worse. Without images (registration on its own, e.g. ``splatreplace bench register``)
 :func:`choose_candidate` decides on the Gaussians' evidence and thresholds. :func:`leave_lone_copies` then leaves
 every class with a single registered copy as it was: it has nothing to share.
 """
@@ -224,33 +223,6 @@ def polish_explains_as_well(scene: Mapping[str, Tensor], labels: Tensor, instanc
     check = choose_pose(scene, labels, instance, anchor, [chosen, polished], images, render, id_maps, rgb_before,
                         0.0, 180.0, max_views, per_view=per_view)
     return check.chosen != 0
-
-
-def accept_by_class(registration: Dict[int, Dict], agreement: Mapping[int, Mapping[str, Optional[float]]],
-                    level: float) -> List[int]:
-    """Accepts every instance whose chosen pose the image margin left ambiguous when its class's other copies, under
-    their chosen poses, agree with its colours at least ``level`` better than with any quarter turn of it. → those
-    instances.
-
-    Args:
-        registration: {instance id: entry with ``image_choice``, ``proposed_transform``, ``success``, ...}, changed
-            in place (``success``, ``transform``, ``message``).
-        agreement: {instance id: :func:`splatreplace_ns.poses.class_evidence.class_agreement` row}.
-    """
-    accepted = []
-    for iid, entry in registration.items():
-        choice = entry.get("image_choice") or {}
-        margin = (agreement.get(int(iid)) or {}).get("class_colour_margin")
-        if (choice.get("chosen") is None or choice.get("accepted") or entry["success"] or margin is None
-                or entry.get("proposed_transform") is None or margin < level):
-            continue
-        entry["success"] = True
-        entry["transform"] = [list(row) for row in entry["proposed_transform"]]
-        entry["message"] = (entry["message"].replace("not replaced: ", "", 1)
-                            + f"; accepted: its class's copies agree with it {margin:.2f} better than with a quarter, "
-                            f"half or three-quarter turn of it (level {level:g})")
-        accepted.append(int(iid))
-    return sorted(accepted)
 
 
 def leave_lone_copies(registration: Dict[int, Dict], classes: Dict[int, str], min_copies: int) -> List[int]:

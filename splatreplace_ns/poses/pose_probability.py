@@ -1,6 +1,7 @@
 """The chance that a chosen pose is right (within 5° of the truth, modulo the class's symmetry), from what the choice
 knows without the truth. Reported per instance (``ns-eval``'s ``replacement``, the viewer's instance list); it does
-not decide: no level of it accepts right poses more reliably than the image margin does.
+not decide: on the dev split no level of it, alone or on top of the image margin, accepts as many right poses for a
+smaller share of wrong ones.
 
 A logistic regression on two pieces of evidence, fitted on the dev split's chosen poses against the truth
 (``benchmarks/fit_pose_probability.py``, ``benchmarks/results/pose_probability_dev.json``): how much better the class's
