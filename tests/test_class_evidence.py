@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from splatreplace_ns.poses.candidates import yaw_rotation
@@ -97,3 +98,30 @@ def test_a_copy_of_a_handful_of_gaussians_and_an_empty_one_stay_finite():
 def test_empty_registration():
     assert class_agreement({}, {}, {}, RegistrationConfig()) == {}
 
+
+def test_class_agreement_places_each_copy_on_the_others_by_their_chosen_poses():
+    """Three copies of an asymmetric shape (1 the template); copy 2 is posed rightly, copy 3 turned half a turn: 3
+    agrees with neither 1 nor 2 in colour, 1 and 2 agree with each other and with nothing of 3's."""
+    rng = np.random.default_rng(0)
+    half = rng.uniform(-0.5, 0.5, (150, 3)) * [1.0, 0.6, 0.4]
+    pts = np.concatenate((half, half * [-1.0, -1.0, 1.0]))  # a shape the half turn about z maps onto itself
+    rgb = np.where(pts[:, :1] > 0, [[0.9, 0.1, 0.1]], [[0.1, 0.1, 0.9]])  # red on +x, blue on -x: its texture does not
+
+    def copy(shift):
+        return InstanceGaussians(means=pts + shift, quats=np.tile([1.0, 0, 0, 0], (300, 1)), scales=np.full((300, 3), 0.02),
+                                 opacities=np.ones(300), colors=rgb)
+
+    instances = {1: copy([0, 0, 0]), 2: copy([3.0, 0, 0]), 3: copy([0, 3.0, 0])}
+    right = np.eye(4)
+    right[:3, 3] = [-3.0, 0, 0]
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # home, then a half turn about z
+    to_home = np.eye(4)
+    to_home[:3, 3] = [0.0, -3.0, 0.0]
+    registration = {1: {"template": 1}, 2: {"template": 1, "proposed_transform": right, "image_choice": {"chosen": 0}},
+                    3: {"template": 1, "proposed_transform": flip @ to_home, "image_choice": {"chosen": 0}}}
+    agreement = class_agreement(instances, registration, {1: "a", 2: "a", 3: "a"}, RegistrationConfig())
+    assert agreement[2]["class_colour"] > 0.45  # right on the template, wrong only against the flipped copy 3
+    assert agreement[3]["class_colour"] < 0.1 and agreement[3]["class_fitness"] > 0.9  # the shape fits, not the colours
+    assert agreement[1]["class_colour"] == pytest.approx(agreement[2]["class_colour"])
+    # turned by half a turn, copy 3 would agree with both others: its margin is below 0; copy 2's is not
+    assert agreement[3]["class_colour_margin"] < -0.5 and agreement[2]["class_colour_margin"] >= 0
