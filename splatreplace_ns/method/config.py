@@ -8,7 +8,7 @@ from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from dataclasses import dataclass, field
-from typing import List, Type
+from typing import Any, Dict, List, Type
 
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
@@ -46,6 +46,13 @@ class SplatReplaceTrainer(Trainer):
     def setup_optimizers(self) -> Optimizers:
         optimizers = super().setup_optimizers()
         self.grad_scaler.watch(optimizers.optimizers.values())
+        load_all = optimizers.load_optimizers
+
+        def load_known(loaded_state: Dict[str, Any]) -> None:
+            # a checkpoint from an earlier version may hold the state of a parameter group since deleted
+            load_all({name: state for name, state in loaded_state.items() if name in optimizers.optimizers})
+
+        optimizers.load_optimizers = load_known
         return optimizers
 
     def train_iteration(self, step: int):
@@ -112,7 +119,6 @@ def splat_replace_trainer_config(
             "sh_offsets": _adam(0.0025),
             "instance_poses": _adam(1e-4),
             "instance_colour": _adam(0.0025),  # log gain per copy and channel: the rate of the colours
-            "class_shading": _adam(0.0025),  # log gain per class, channel and world-normal term
             "template_class": _adam(0.0),  # a label carried through densification, never optimised
             "exposure": _adam(1e-3),
             "sky": _adam(0.02),

@@ -16,7 +16,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from splatreplace_ns.template.build import build_templates
 from splatreplace_ns.template.revert import revert_instances, score_replaced_instances
-from splatreplace_ns.template.world_shading import SHADING_TERMS
 
 
 class FinetuneStage:
@@ -61,12 +60,8 @@ class FinetuneStage:
                               torch.zeros(len(table.ids), 3, device=model.means.device))
         model.instance_table = table
         model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)  # per stored Gaussian; see template_class
-        model.class_shading = torch.nn.Parameter(torch.zeros(len(table.classes), SHADING_TERMS, 3,
-                                                             device=model.means.device))  # gain 1 to start
-        self._rebind_optimizer((getattr(model, "optimizers", None) or {}).get("class_shading"), model.class_shading)
         model.stage = "finetune"
         model.finetune_start = start_step
-        model.finetune_strategy, model.finetune_strategy_state = self._finetune_strategy()
         for name in table.kept_in_background:
             CONSOLE.log(f"[bold yellow]instance {name} was not registered and stays as it is (not replaced)")
         CONSOLE.log(
@@ -145,8 +140,6 @@ class FinetuneStage:
             self._swap_parameters(new_params, rows[:, :6].contiguous(), rows[:, 6:].contiguous())
             model.instance_table = table
             model.instance_labels = torch.zeros(model.num_points, dtype=torch.long)
-            if model.finetune_strategy is not None:
-                model.finetune_strategy_state = model.finetune_strategy.initialize_state(scene_scale=1.0)
             self.selection_controls.show_selected(model.instances, self._not_replaced(), self._pose_probabilities())
         model.own_gaussians = {}
         seconds = time.perf_counter() - start
@@ -155,33 +148,6 @@ class FinetuneStage:
         CONSOLE.log(f"check after fine-tuning against the training images: {len(scores)} instances, "
                     f"{len(reverted)} put back as they were ({seconds:.1f} s)")
         return reverted
-
-    def _finetune_strategy(self):
-        """Densification during fine-tuning: no opacity reset (the scene is already trained), refinement every
-        tenth of fine-tuning (at most ``refine_every``) during its first half, ending at least one interval before
-        the check after fine-tuning so that new Gaussians have settled when it compares (``model.finetune_densify``
-        says which Gaussians may grow)."""
-        from dataclasses import replace as dc_replace
-
-        model = self.model
-        if model.config.finetune_densify in ("off", False):  # False/True: configs written before the three modes
-            return None, {}
-        steps = self.config.finetune_iterations
-        every = min(model.config.refine_every, max(steps // 10, 1))
-        last = steps // 2
-        if self.config.revert.enabled:
-            last = min(last, self.config.revert.steps_before(steps) - every)
-        strategy = dc_replace(
-            model.strategy,
-            refine_every=every,
-            refine_start_iter=every,
-            refine_stop_iter=max(last + 1, 0),
-            reset_every=10**9,
-            pause_refine_after_reset=0,
-            absgrad=False,
-            grow_grad2d=model.config.grad_thresh_without_absgrad,
-        )
-        return strategy, strategy.initialize_state(scene_scale=1.0)
 
     def _swap_parameters(self, params: Dict[str, torch.Tensor], pose_delta: torch.Tensor,
                          colour_gain: torch.Tensor) -> None:

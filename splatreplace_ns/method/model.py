@@ -37,7 +37,6 @@ from splatreplace_ns.method.model_templates import ReplacedScene
 from splatreplace_ns.method.sky import pixel_directions, sky_colour, sky_opacity_l1
 from splatreplace_ns.render import rasterize, resolve_backend, world_to_camera
 from splatreplace_ns.template.build import InstanceTable
-from splatreplace_ns.template.world_shading import SHADING_TERMS
 from splatreplace_ns.template.compose import instance_poses, offsets_l1
 
 allow_numpy_scalars_in_checkpoints()
@@ -79,11 +78,6 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Fine-tune one gain per colour channel for each replaced copy, applied to its whole colour (not in the paper):
     a copy's shade or tint, learned where its training views see it, then also holds on the parts of it only
     other copies' views saw, which the per-Gaussian offsets leave at the template's colour."""
-    world_shading: bool = False
-    """Fine-tune, per class, a shading in world coordinates shared by its copies, a colour gain per channel that
-    depends on each Gaussian's normal as the copy's pose turns it (``splatreplace_ns.template.world_shading``; not
-    in the paper): the light that fell on the template copy then stays with the world instead of turning with
-    every copy."""
     sky_background: Literal["auto", "on", "off"] = "auto"
     """Learn the sky as a background that depends on the elevation of each ray (``splatreplace_ns.method.sky``)
     instead of splatfacto's random training background. auto: on when the dataset says depth 0 is the sky
@@ -92,10 +86,6 @@ class SplatReplaceModelConfig(SplatfactoModelConfig):
     """Legendre degree of the sky background over the elevation of the ray (0: one colour)."""
     sky_opacity_lambda: float = 0.1
     """Weight of the L1 that asks for opacity 0 on sky pixels and 1 on surface pixels (sky background only)."""
-    finetune_densify: Literal["off", "background", "all"] = "off"
-    """Densify and prune during the first half of fine-tuning. off: the set stays fixed; background: only Gaussians
-    outside the templates grow; all: template Gaussians too, with statistics summed over instances (each Gaussian
-    added to a template renders once per instance). Measured: docs/deviations.md."""
 
 
 class SplatReplaceModel(ReplacedScene, SplatfactoModel):
@@ -163,7 +153,6 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(torch.zeros(0, 6))  # per instance (ω, δt), see template.compose
         self.instance_colour_gain = Parameter(torch.zeros(0, 3))  # per instance log gain per channel (copy_colour_gain)
-        self.class_shading = Parameter(torch.zeros(0, SHADING_TERMS, 3))  # per class, world_shading
         if self.config.sky_degree < 0:
             raise ValueError(f"sky_degree must be >= 0, got {self.config.sky_degree}")
         # sky background (used only when uses_sky): Legendre coefficients per RGB channel, a grey sky to start
@@ -177,8 +166,6 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
         self.registration: Dict[int, Dict] = {}
         self.finetune_start: Optional[int] = None
         self.base_gaussians = 0  # Gaussians before the templates were built (for export size reports)
-        self.finetune_strategy: Optional[DefaultStrategy] = None
-        self.finetune_strategy_state: Dict = {}
         self.stage = "base"
         self.highlight: Optional[torch.Tensor] = None  # [N] bool, tinted in viewer renders while selecting
         # segmentation results: per-Gaussian instance (0 = background) and the instances' metadata
@@ -253,8 +240,6 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
                 current = self.instance_pose_delta
             elif name == "instance_colour":
                 current = self.instance_colour_gain
-            elif name == "class_shading":
-                current = self.class_shading
             else:
                 continue
             for group in optimizer.param_groups:
@@ -272,12 +257,9 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
         for grad in (getattr(means2d, "grad", None), getattr(means2d, "absgrad", None)):
             if grad is not None:
                 grad.nan_to_num_(0.0, 0.0, 0.0)
-        # Densification and pruning belong to the base stage and to fine-tuning (of the replaced scene, or of the
-        # segmented one when nothing was replaced); the contrastive stage keeps the Gaussian set fixed.
+        # Densification and pruning belong to the base stage; later stages keep the Gaussian set fixed.
         if self.stage == "base":
             super().step_post_backward(step)
-        elif self.stage in ("finetune", "segmented") and self.finetune_strategy is not None:
-            self._finetune_densify(step)
 
     def get_extra_state(self) -> Dict:
         return {
@@ -320,9 +302,8 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
             state_dict["instance_pose_delta"] = self.instance_pose_delta.detach().clone()
         if "instance_colour_gain" not in state_dict:  # checkpoints from before the colour gain: gain 1
             state_dict["instance_colour_gain"] = torch.zeros(len(state_dict["instance_pose_delta"]), 3)
-        if "class_shading" not in state_dict:  # checkpoints from before the world shading: none
-            state_dict["class_shading"] = torch.zeros(0, SHADING_TERMS, 3)
-        for name in ("instance_pose_delta", "instance_colour_gain", "class_shading"):
+        state_dict.pop("class_shading", None)  # checkpoints with the deleted shading in world coordinates
+        for name in ("instance_pose_delta", "instance_colour_gain"):
             setattr(self, name, Parameter(torch.zeros_like(state_dict[name], device=self.device)))
         if "sky_coefficients" not in state_dict:  # checkpoints from before the sky background: a grey sky
             state_dict["sky_coefficients"] = torch.zeros_like(self.sky_coefficients)
@@ -336,7 +317,6 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
             groups["exposure"] = [self.exposure]
         groups["instance_poses"] = [self.instance_pose_delta]
         groups["instance_colour"] = [self.instance_colour_gain]
-        groups["class_shading"] = [self.class_shading]
         groups["sky"] = [self.sky_coefficients]
         return groups
 
@@ -411,12 +391,9 @@ class SplatReplaceModel(ReplacedScene, SplatfactoModel):
             "height": H,
             "n_cameras": 1,
             "gaussian_ids": None,
-            "param_index": None if scene is None else scene.param_index,
         }
         if self.training and scene is None:
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
-        elif self.training and out.means2d.requires_grad:
-            out.means2d.retain_grad()  # screen-space gradients for densifying the templates
 
         background = self._background(camera_to_world[0], K, W, H)
         rgb = out.image[..., :3] + (1 - out.alpha) * background

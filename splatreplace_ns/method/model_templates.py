@@ -39,7 +39,6 @@ class ReplacedScene:
             table.class_index.to(device), table.slot.to(device), table.ids.to(device), q, R, t,
             lam=self.config.template_mix,
             colour_gain=self.instance_colour_gain if self.config.copy_colour_gain else None,
-            shading=self.class_shading if self.config.world_shading else None,
         )
 
     @torch.no_grad()
@@ -71,45 +70,7 @@ class ReplacedScene:
         self.instance_table = InstanceTable.empty()
         self.instance_pose_delta = Parameter(self.instance_pose_delta.new_zeros(0, 6))
         self.instance_colour_gain = Parameter(self.instance_colour_gain.new_zeros(0, 3))
-        self.class_shading = Parameter(self.class_shading.new_zeros((0,) + tuple(self.class_shading.shape[1:])))
         self.stage = "replaced"
-
-    def _finetune_densify(self, step: int) -> None:
-        """Densification on the stored Gaussians with the screen-space statistics of the rendered ones (a template
-        Gaussian's summed over the instances that render it; none at all with ``finetune_densify=background``)."""
-        info = self.info
-        means2d = info.get("means2d")
-        if means2d is None or means2d.grad is None:
-            return
-        radii = info["radii"].reshape(-1)
-        param_index = info.get("param_index")
-        if param_index is None:  # the scene is not replaced: rendered Gaussian i is stored Gaussian i
-            param_index = torch.arange(len(radii), device=radii.device)
-        counted = radii > 0
-        if self.config.finetune_densify == "background":
-            counted &= self.gauss_params["template_class"].detach()[param_index, 0] == 0
-        grad = means2d.grad.reshape(-1, 2)[counted].clone()
-        packed = grad.detach().clone().requires_grad_(True)
-        packed.grad = grad
-        packed_info = {
-            "means2d": packed, "radii": radii[counted].float(), "gaussian_ids": param_index[counted],
-            "width": info["width"], "height": info["height"], "n_cameras": 1,
-        }
-        params, optimizers = self.gauss_params, self.optimizers
-        if self.stage == "segmented":  # the instance labels follow their Gaussians through splits and prunes
-            labels = Parameter(self.instance_labels.to(radii.device, torch.float32)[:, None], requires_grad=False)
-            params, optimizers = dict(params), dict(optimizers)
-            params["instance_labels"] = labels
-            optimizers["instance_labels"] = torch.optim.SGD([labels], lr=0.0)  # gsplat edits one optimizer per key
-        self.finetune_strategy.step_post_backward(
-            params=params, optimizers=optimizers, state=self.finetune_strategy_state,
-            # counted from 1: gsplat resets every opacity whenever step % reset_every == 0, step 0 included
-            step=step - int(self.finetune_start or 0) + 1, info=packed_info, packed=True,
-        )
-        if params is not self.gauss_params:
-            self.instance_labels = params.pop("instance_labels")[:, 0].round().long().cpu()
-            for name, value in params.items():
-                self.gauss_params[name] = value
 
     def render_features(self, camera: Cameras, features: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Renders per-Gaussian features at full resolution with the geometry detached.

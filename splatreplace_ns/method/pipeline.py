@@ -129,9 +129,8 @@ class SplatReplacePipeline(MasksStage, SegmentationStage, RegistrationStage, Fin
                     self.build_shared_templates(start_step=step)
                 else:
                     self.registration_report = {"time_s": 0.0, "failures": [], "skipped": "no instance was selected"}
-                if not self.model.has_templates:  # nothing replaced: the segmented scene fine-tunes (and densifies)
+                if not self.model.has_templates:  # nothing replaced: the segmented scene fine-tunes
                     self.model.finetune_start = step
-                    self.model.finetune_strategy, self.model.finetune_strategy_state = self._finetune_strategy()
             return super().get_train_loss_dict(step)
         if self.model.stage == "base":
             CONSOLE.log(f"[bold]step {step}: base stage done ({self.model.num_points} Gaussians); training contrastive features")

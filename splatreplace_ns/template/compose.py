@@ -6,8 +6,7 @@ world coordinates and, per class ``c ≥ 1``, template Gaussians in *template sp
 the class's template instance). Every instance ``i`` of class ``c`` is a reference to that template: a
 pose ``P_i`` (template space → world) and per-Gaussian SH offsets in its slot ``s_i``. Its colour is
 ``c = λ c_shared + (1 − λ) c_offset`` (λ = 0.8), optionally times a learned gain per colour channel for the
-whole copy (``model.copy_colour_gain``) and by a shading per class in world coordinates (``model.world_shading``,
-``template.world_shading``), neither in the paper.
+whole copy (``model.copy_colour_gain``, not in the paper).
 
 Quaternions are wxyz. Poses are ``q_i = exp(ω_i) ⊗ q0_i``, ``t_i = t0_i + δt_i`` with the learnable
 ``(ω_i, δt_i)`` starting at zero: a stable parametrisation (no normalisation drift, no gimbal lock,
@@ -26,7 +25,6 @@ from torch import Tensor
 from splatreplace_ns.render.projection import quat_to_rotmat
 from splatreplace_ns.render.sh import SH_C0
 from splatreplace_ns.render.transform import axis_angle_to_quat, quat_multiply, sh_rotation, zero_quats_to_identity
-from splatreplace_ns.template.world_shading import shading_log_gain, template_normals
 
 
 def instance_poses(q0: Tensor, t0: Tensor, delta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -103,7 +101,6 @@ def compose_scene(
     lam: float = 0.8,
     sh_degree: Optional[int] = None,
     colour_gain: Optional[Tensor] = None,
-    shading: Optional[Tensor] = None,
 ) -> ComposedScene:
     """Places every instance's copy of its class template into the world.
 
@@ -119,7 +116,6 @@ def compose_scene(
         sh_degree: degree used for the SH rotation (default: from K).
         colour_gain: [I, 3] natural log of each instance's colour gain per channel (:func:`apply_colour_gain`),
             or None (no gain).
-        shading: [C, 4, 3] each class's shading in world coordinates (``template.world_shading``), or None.
     Returns:
         :class:`ComposedScene` with M = N_background + Σ_i N_{class(i)} Gaussians.
     """
@@ -154,17 +150,6 @@ def compose_scene(
     offsets = sh_offsets[inst_rows, torch.cat(slots)]  # [M_inst, K, 3]
     coeffs = mix_sh(sh[inst_rows], offsets, lam)
     log_gain = None if colour_gain is None else colour_gain.to(coeffs)[row_instance]
-    if shading is not None and len(shading):  # light that stays with the world while the copy turns
-        templ = torch.nonzero(gauss_class > 0).squeeze(-1)  # each template once, not once per copy
-        centre = torch.zeros(int(gauss_class.max()) + 1, 3, dtype=means.dtype, device=device)
-        centre.index_add_(0, gauss_class[templ], means[templ].detach())
-        centre /= torch.bincount(gauss_class[templ], minlength=len(centre)).clamp_min(1)[:, None].to(means)
-        normals = means.new_zeros(len(means), 3)
-        normals[templ] = template_normals(means[templ], quats[templ], log_scales[templ], centre[gauss_class[templ]])
-        world_normals = torch.einsum("mij,mj->mi", R_rows.detach(), normals[inst_rows])
-        row_class = instance_class.to(device)[row_instance] - 1
-        shade = shading_log_gain(world_normals, shading.to(coeffs)[row_class])
-        log_gain = shade if log_gain is None else log_gain + shade
     if log_gain is not None:  # a gain per channel commutes with the SH rotation below
         coeffs = apply_colour_gain(coeffs, log_gain)
     if K > 1:  # SH rotation: one [K, K] matrix per instance, applied to its block of rows

@@ -109,11 +109,13 @@ class InstancedScene:
             offsets[rows, slot[i]] = self.instance_offsets(int(ids[i]), len(rows), K)
         q, R, t = instance_poses(a["pose_q"].float(), a["pose_t"].float(), torch.zeros(len(ids), 6))
         gain = a.get("colour_gain")  # absent: the run learned no per-copy colour gain
-        shading = a.get("class_shading")  # absent: no shading in world coordinates
+        if "class_shading" in a:
+            raise ValueError("this file holds a shading in world coordinates (class_shading), an option this version "
+                             "no longer has; export the run again with the version that trained it")
         return compose_scene(
             a["means"].float(), a["quats"].float(), a["scales"].float(), a["opacities"].float(), a["sh"].float(),
             offsets, gauss_class, cls, slot, ids, q, R, t, lam=float(a["lam"]),
-            colour_gain=None if gain is None else gain.float(), shading=None if shading is None else shading.float(),
+            colour_gain=None if gain is None else gain.float(),
         )
 
     def instance_offsets(self, instance_id: int, rows: int, num_coeffs: int) -> torch.Tensor:
@@ -151,14 +153,9 @@ def instanced_arrays(model, colour_tolerance: float = DEFAULT_COLOUR_TOLERANCE) 
     }
     if model.config.copy_colour_gain:
         out["colour_gain"] = model.instance_colour_gain  # [I, 3] natural log per channel, in the table's order
-    if model.config.world_shading:
-        out["class_shading"] = model.class_shading  # [C, 4, 3] per class (template.world_shading)
     epsilon = offset_epsilon(model.config.template_mix, offsets.shape[2], colour_tolerance)
     if "colour_gain" in out and len(table.ids):  # a gain scales a dropped offset's colour change too
         epsilon /= max(float(torch.exp(model.instance_colour_gain.detach()).max()), 1.0)
-    if "class_shading" in out and len(model.class_shading):  # so does the shading: at most exp(|s0| + |s_xyz|)
-        s = model.class_shading.detach()
-        epsilon /= max(float(torch.exp(s[:, 0].abs() + s[:, 1:].norm(dim=1)).max()), 1.0)
     out["offsets_epsilon"] = np.float32(min(epsilon, np.finfo(np.float32).max))
     for i in range(len(table.ids)):
         rows = gauss_class == table.class_index[i].item()
