@@ -56,6 +56,20 @@ def test_costs_are_the_differences_between_the_runs(bench, tmp_path, capsys):
     assert "registration costs +0.35" in capsys.readouterr().out
 
 
+def test_without_exact_instances_only_registrations_cost_is_split_off(bench, tmp_path, capsys):
+    d = suite_json(tmp_path / "d.json", None, {0: 0.5, 1: 2.0}, {0: [-1.5, 0.2], 1: [2.0, 1.0]})
+    p = suite_json(tmp_path / "p.json", "gt_poses", {0: 1.0, 1: 2.2}, {0: [0.5, 0.2], 1: [2.0, 1.5]})
+    result = bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), out=tmp_path / "out.json"))
+    assert [s["registration_cost"] for s in result["scenes"]] == pytest.approx([0.5, 0.2])
+    assert [s["segmentation_cost"] for s in result["scenes"]] == [None, None]
+    assert set(result["runs"]) == {"defaults", "gt_poses"}
+    summary = result["summary"]["all"]
+    assert summary["segmentation_cost_mean"] is None and "gt_instances" not in summary
+    assert result["summary"]["instances_by_status"]["not replaced"]["gain_gt_poses"] == pytest.approx((0.2 + 1.5) / 2)
+    out = capsys.readouterr().out
+    assert "registration costs +0.35 dB" in out and "segmentation" not in out
+
+
 def test_runs_of_other_scenes_or_oracles_are_refused(bench, tmp_path):
     d = suite_json(tmp_path / "d.json", None, {0: 0.5}, {0: [0.1]})
     p = suite_json(tmp_path / "p.json", "gt_poses", {0: 1.0}, {0: [0.2]})
@@ -67,6 +81,6 @@ def test_runs_of_other_scenes_or_oracles_are_refused(bench, tmp_path):
     with pytest.raises(ValueError, match="differ from the defaults in more than the oracle"):
         bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), gt_instances=(other_res,), out=out))
     elsewhere = suite_json(tmp_path / "e.json", "gt_instances", {5: 1.5}, {5: [0.3]})
-    with pytest.raises(ValueError, match="no scene was run by all three"):
+    with pytest.raises(ValueError, match="no scene was run by all 3"):
         bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), gt_instances=(elsewhere,), out=out))
     assert not out.exists()
