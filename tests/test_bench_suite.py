@@ -301,3 +301,27 @@ def test_a_scene_colmap_cannot_pose_is_a_row_that_says_so(tmp_path, monkeypatch,
     assert result["summary"]["not_posed"] == [1] and result["summary"]["gain_masked_mean"] is None
     assert result["parameters"]["poses"] == "colmap"
     assert "seed 1: not run: ns-process-data failed" in capsys.readouterr().out
+
+
+def test_the_table_reads_a_resumed_scene_that_selected_nothing(capsys, monkeypatch):
+    """A scene whose clicks selected no instance has no contrastive, segmentation or registration time; once its
+    result.json is reused (--resume) those are null, and the table says n/a instead of failing."""
+    from rich.console import Console
+
+    from splatreplace_ns.tools.bench import suite_output
+    from splatreplace_ns.tools.bench.suite import summarise
+
+    monkeypatch.setattr(suite_output, "suite_console", lambda: Console(width=400))  # one line per row
+    figures = {"psnr": 20.0, "psnr_masked": 18.0, "ssim": 0.8, "ssim_masked": 0.7}
+    row = {"seed": 10007, "scene": {"groups": [{"count": 4, "cls": "rook"}]}, "baseline": figures, "ours": figures,
+           "gain_masked": 0.0, "gain_full": 0.0, "per_instance": {}, "segmentation_miou": None,
+           "registration": {"rotation_error_deg_mean": None, "rotation_error_deg_max": None, "failures": [],
+                            "wrong": []},
+           "time_s": {"base": 146.6, "contrastive": None, "segmentation": None, "registration": 0.0,
+                      "finetune": 189.2}}
+    rows = json.loads(json.dumps([row]))  # as --resume reads it back
+    result = {"split": "report", "parameters": {"res": "8x8", "base_iterations": 1, "contrastive_iterations": 1,
+                                                "finetune_iterations": 1, "baseline_iterations": 3},
+              "scenes": rows, "summary": summarise(rows), "time_s": 60.0}
+    suite_output.print_suite(result)
+    assert "147 / n/a / n/a / 0 / 189" in capsys.readouterr().out

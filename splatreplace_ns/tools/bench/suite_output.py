@@ -54,7 +54,7 @@ def print_suite(result: Dict) -> None:
             _fmt(r["segmentation_miou"], 3),
             f"{_fmt(reg['rotation_error_deg_mean'], 1)} / {_fmt(reg['rotation_error_deg_max'], 1)}",
             f"{len(reg['failures'])} / {len(reg['wrong'])}",
-            " / ".join(f"{t[k]:.0f}" for k in ("base", "contrastive", "segmentation", "registration", "finetune")),
+            " / ".join(_fmt(t[k], 0) for k in ("base", "contrastive", "segmentation", "registration", "finetune")),
         )
     console.print(table)
     for r in result["scenes"]:
