@@ -8,6 +8,9 @@ and of 3DGS* (trained beside each other on the defaults' run; the oracle fine-tu
     splatreplace bench suite --split dev --seeds 8 --res 192x144                          # the defaults, per size
     splatreplace bench suite --split dev --seeds 8 --res 192x144 --from-segmentation --oracle gt_instances
     python benchmarks/bench_resolution.py --runs benchmarks/runs/suite/random_8_192x144_48v8_1500-500-1000 ...
+
+With ``--keep`` an earlier JSON's points that no given run folder measures again (same seed, size and regime) stay
+in the table, marked ``kept_from`` (they were measured at the code of that JSON's run, not this one).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import tyro
 
@@ -28,6 +31,8 @@ class BenchResolutionConfig:
     """Run folders of `splatreplace bench suite` (each holding its result.json)."""
     out: Path = Path("benchmarks/results/resolution_dev.json")
     """Where to write the JSON."""
+    keep: Optional[Path] = None
+    """An earlier JSON of this script whose points not measured again by ``runs`` are kept (marked ``kept_from``)."""
 
 
 def point(folder: Path) -> Dict:
@@ -47,17 +52,32 @@ def point(folder: Path) -> Dict:
             "finetune_s": row["time_s"].get("finetune")}
 
 
+def key(p: Dict) -> Tuple:
+    """What makes two points the same point of the curve."""
+    return p["seed"], p["res"], p["regime"]
+
+
+def kept_points(earlier: Path, measured: List[Dict]) -> List[Dict]:
+    """The points of an earlier JSON that ``measured`` does not measure again, each marked with where it came from."""
+    again = {key(p) for p in measured}
+    return [{**p, "kept_from": p.get("kept_from") or earlier.name}
+            for p in json.loads(Path(earlier).read_text())["points"] if key(p) not in again]
+
+
 def table(points: List[Dict]) -> None:
     print("| seed | size | regime | masked gain | full gain | shared pixels | not accepted / wrong | ours, s | 3DGS*, s |")
     print("| ---: | --- | --- | ---: | ---: | ---: | --- | ---: | ---: |")
     for p in sorted(points, key=lambda p: (p["seed"], p["pixels"], p["regime"])):
+        regime = p["regime"] + (" (kept)" if p.get("kept_from") else "")
         shared = "–" if p["gain_shared_sharp"] is None else f"{p['gain_shared_sharp']:+.2f}"
-        print(f"| {p['seed']} | {p['res']} | {p['regime']} | {p['gain_masked']:+.2f} | {p['gain_full']:+.2f} | {shared} | "
+        print(f"| {p['seed']} | {p['res']} | {regime} | {p['gain_masked']:+.2f} | {p['gain_full']:+.2f} | {shared} | "
               f"{p['not_accepted']} / {p['wrong']} | {p['ours_s']:.0f} | {p['baseline_s']:.0f} |")
 
 
 def main(cfg: BenchResolutionConfig) -> Dict:
     points = [point(folder) for folder in cfg.runs]
+    if cfg.keep is not None:
+        points += kept_points(cfg.keep, points)
     table(points)
     result = {"benchmark": "resolution", "points": points}
     write_result_json(result, cfg.out)

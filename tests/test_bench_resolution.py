@@ -29,3 +29,18 @@ def test_points_carry_size_regime_and_figures(tmp_path, capsys):
     table = capsys.readouterr().out
     assert table.index("96x72") < table.index("192x144")  # sorted by size
     assert json.loads((tmp_path / "out.json").read_text())["points"][0]["res"] == "192x144"
+
+
+def test_keep_adds_only_points_not_measured_again(tmp_path, capsys):
+    bench = load_benchmark("bench_resolution")
+    earlier = bench.main(bench.BenchResolutionConfig(
+        runs=(_run(tmp_path / "a", "192x144", None, 1.3), _run(tmp_path / "b", "96x72", None, 0.9)),
+        out=tmp_path / "earlier.json"))
+    assert len(earlier["points"]) == 2
+    result = bench.main(bench.BenchResolutionConfig(runs=(_run(tmp_path / "c", "96x72", None, 1.7),),
+                                                    out=tmp_path / "now.json", keep=tmp_path / "earlier.json"))
+    by_res = {p["res"]: p for p in result["points"]}
+    assert set(by_res) == {"96x72", "192x144"}
+    assert by_res["96x72"]["gain_masked"] == 1.7 and "kept_from" not in by_res["96x72"]  # measured again wins
+    assert by_res["192x144"]["gain_masked"] == 1.3 and by_res["192x144"]["kept_from"] == "earlier.json"
+    assert "defaults (kept)" in capsys.readouterr().out
