@@ -1,22 +1,27 @@
 """Where the scene suite's gain is lost: the defaults against the same scenes with exact stages.
 
-Reads three `splatreplace bench suite` JSONs of the same split, budget and scenes: the defaults, and the two oracles
-resumed from the defaults' segmentation (`--from-segmentation --oracle gt_poses`, `--oracle gt_instances`). The
-oracles fine-tune against the same baseline, so per scene the differences split the masked gain's distance from
+Reads up to three `splatreplace bench suite` JSONs of the same split, budget and scenes: the defaults, and the
+oracles resumed from the defaults' segmentation (`--from-segmentation --oracle gt_poses`, `--oracle gt_instances`).
+The oracles fine-tune against the same baseline, so per scene the differences split the masked gain's distance from
 what the representation reaches with exact stages (gt_instances, the ceiling at this budget):
 
     registration's cost  = gain(gt_poses) - gain(defaults)       (same segmentation, exact poses)
     segmentation's cost  = gain(gt_instances) - gain(gt_poses)   (exact poses, exact Gaussians per instance)
+    the stages' cost     = gain(gt_instances) - gain(defaults)   (both; the only one without a gt_poses run)
 
-Per instance: the baseline's PSNR over its test-view pixels and its gain under each run. Prints the table and
-writes one JSON.
+Per instance: the baseline's PSNR over its test-view pixels and its gain under each run. Per scene and run, where
+the suite measured it: the gain on the instance pixels of each sharp class (own: the copy's own training views saw
+that point as sharply as the test view; shared: only other copies' did; unseen: none did;
+``splatreplace_ns.eval.coverage``), which says whether the gap to a target lies in pixels sharing can reach.
+Prints the tables and writes one JSON.
 
     splatreplace bench suite --split dev --seeds 0 1 2 3 4 5 --res 96x72 --json D.json
     splatreplace bench suite --split dev --seeds 0 1 2 3 4 5 --res 96x72 --from-segmentation --oracle gt_poses --json P.json
     splatreplace bench suite --split dev --seeds 0 1 2 3 4 5 --res 96x72 --from-segmentation --oracle gt_instances --json I.json
     python benchmarks/bench_suite_oracle.py --defaults D.json --gt-poses P.json --gt-instances I.json
 
-Without ``--gt-instances`` only registration's cost is split off (and the tables leave the ceiling out).
+Without ``--gt-instances`` only registration's cost is split off (and the tables leave the ceiling out); without
+``--gt-poses`` only the stages' cost together.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import tyro
 from splatreplace_ns.tools.bench.output import write_result_json
 
 RUNS = ("defaults", "gt_poses", "gt_instances")
+SHARP_CLASSES = ("own", "shared", "unseen")
 WRONG_POSE_DEG = 5.0
 """As the suite counts a wrong pose (``splatreplace_ns.tools.bench.suite.WRONG_POSE_DEG``)."""
 
@@ -40,8 +46,9 @@ WRONG_POSE_DEG = 5.0
 class BenchSuiteOracleConfig:
     defaults: Tuple[Path, ...]
     """Suite JSONs with the defaults (several when the scenes ran in parts)."""
-    gt_poses: Tuple[Path, ...]
-    """Suite JSONs of the same scenes with --from-segmentation --oracle gt_poses."""
+    gt_poses: Tuple[Path, ...] = ()
+    """Suite JSONs of the same scenes with --from-segmentation --oracle gt_poses (none: registration's and
+    segmentation's costs are not told apart)."""
     gt_instances: Tuple[Path, ...] = ()
     """Suite JSONs of the same scenes with --from-segmentation --oracle gt_instances (none: segmentation's cost is
     not measured)."""
@@ -86,8 +93,10 @@ def decompose(rows: Dict[str, Dict[int, Dict]]) -> Dict[str, List[Dict]]:
             "baseline_masked": by["defaults"]["baseline"]["psnr_masked"],
             "gain_masked": masked,
             "gain_full": {k: by[k]["gain_full"] for k in runs},
-            "registration_cost": masked["gt_poses"] - masked["defaults"],
-            "segmentation_cost": masked["gt_instances"] - masked["gt_poses"] if "gt_instances" in masked else None,
+            "registration_cost": cost(masked, "gt_poses", "defaults"),
+            "segmentation_cost": cost(masked, "gt_instances", "gt_poses"),
+            "stages_cost": cost(masked, "gt_instances", "defaults"),
+            "sharp_classes": {k: sharp_classes(by[k]) for k in runs},
             "not_accepted": len(by["defaults"]["registration"]["failures"]),
             "losing_over_1db": {k: sum(v["gain"] < -1.0 for v in by[k]["per_instance"].values()) for k in runs},
         })
@@ -102,6 +111,35 @@ def decompose(rows: Dict[str, Dict[int, Dict]]) -> Dict[str, List[Dict]]:
                               "rotation_error_deg": None if entry is None else entry.get(
                                   "rotation_error_deg" if entry["success"] else "proposed_rotation_error_deg")})
     return {"scenes": scenes, "instances": instances}
+
+
+def cost(masked: Dict[str, float], better: str, worse: str) -> Optional[float]:
+    """gain(better) - gain(worse) where both ran, else None."""
+    return masked[better] - masked[worse] if better in masked and worse in masked else None
+
+
+def sharp_classes(row: Dict) -> Optional[Dict]:
+    """A suite row's masked gain on each sharp class's pixels and the classes' share of the instance pixels (None
+    where the suite did not class them: no ground truth to class by)."""
+    sharp = (row.get("coverage") or {}).get("sharp")
+    if not sharp:
+        return None
+    return {"gain": {c: sharp[c]["gain"] for c in SHARP_CLASSES},
+            "pixel_share": {c: sharp["pixel_share"][c] for c in SHARP_CLASSES}}
+
+
+def sharp_summary(scenes: List[Dict], run: str) -> Optional[Dict]:
+    """Over the scenes whose run classed its pixels: the mean gain on each class (over the scenes with pixels of
+    that class), and the mean share of shared pixels."""
+    classed = [s["sharp_classes"][run] for s in scenes if s["sharp_classes"].get(run)]
+    if not classed:
+        return None
+    out = {"scenes": len(classed), "shared_pixel_share_mean": statistics.fmean(c["pixel_share"]["shared"]
+                                                                                for c in classed)}
+    for c in SHARP_CLASSES:
+        gains = [x["gain"][c] for x in classed if x["gain"][c] is not None]
+        out[f"{c}_gain_mean"] = statistics.fmean(gains) if gains else None
+    return out
 
 
 def instance_status(entry: Optional[Dict]) -> str:
@@ -140,10 +178,11 @@ def summarise(diff: Dict[str, List[Dict]]) -> Dict:
             out[k] = {"mean": statistics.fmean(g), "worst": min(g), "sd": statistics.pstdev(g),
                       "full_mean": statistics.fmean(s["gain_full"][k] for s in scenes),
                       "full_worst": min(s["gain_full"][k] for s in scenes),
-                      "losing_over_1db": sum(s["losing_over_1db"][k] for s in scenes)}
-        out["registration_cost_mean"] = statistics.fmean(s["registration_cost"] for s in scenes)
-        out["segmentation_cost_mean"] = (None if scenes[0]["segmentation_cost"] is None
-                                         else statistics.fmean(s["segmentation_cost"] for s in scenes))
+                      "losing_over_1db": sum(s["losing_over_1db"][k] for s in scenes),
+                      "sharp_classes": sharp_summary(scenes, k)}
+        for name in ("registration_cost", "segmentation_cost", "stages_cost"):
+            out[f"{name}_mean"] = (None if scenes[0][name] is None
+                                   else statistics.fmean(s[name] for s in scenes))
         return out
 
     scenes = diff["scenes"]
@@ -154,30 +193,51 @@ def summarise(diff: Dict[str, List[Dict]]) -> Dict:
 
 def print_table(result: Dict) -> None:
     runs = tuple(result["runs"])
+    def signed(x: Optional[float]) -> str:
+        return "" if x is None else f"{x:+.2f}"
+
     print(f"{'seed':>5} {'classes':<28} {'3DGS* masked':>12} " + " ".join(f"{k[:9]:>9}" for k in runs)
-          + f" {'reg. cost':>9} {'seg. cost':>9} {'full, each run':>22} {'lose>1dB':>10}")
+          + f" {'reg. cost':>9} {'seg. cost':>9} {'stages':>7} {'full, each run':>22} {'lose>1dB':>10}")
     for s in result["scenes"]:
         g, f, n = s["gain_masked"], s["gain_full"], s["losing_over_1db"]
-        seg = "" if s["segmentation_cost"] is None else f"{s['segmentation_cost']:+.2f}"
         print(f"{s['seed']:>5} {', '.join(s['classes']):<28} {s['baseline_masked']:>12.2f} "
               + " ".join(f"{g[k]:>+9.2f}" for k in runs)
-              + f" {s['registration_cost']:>+9.2f} {seg:>9} "
+              + f" {signed(s['registration_cost']):>9} {signed(s['segmentation_cost']):>9}"
+              + f" {signed(s['stages_cost']):>7} "
               + f"{' / '.join(f'{f[k]:+.2f}' for k in runs):>22} {' / '.join(str(n[k]) for k in runs):>10}")
+    print("masked gain per sharp class (own / shared / unseen) and the share of shared pixels:")
+    for s in result["scenes"]:
+        cells = []
+        for k in runs:
+            c = s["sharp_classes"].get(k)
+            cells.append(f"{k}: " + ("not classed" if c is None else " / ".join(
+                signed(c["gain"][x]) or "-" for x in SHARP_CLASSES)))
+        share = next((c["pixel_share"]["shared"] for c in s["sharp_classes"].values() if c), None)
+        print(f"{s['seed']:>5} shared {'-' if share is None else f'{100 * share:.0f} %':>5}  " + "; ".join(cells))
     for status, st in result["summary"]["instances_by_status"].items():
         print(f"instances {status} by the defaults: {st['count']}, mean gain " + ", ".join(
             f"{k} {st[f'gain_{k}']:+.2f}" for k in runs))
     for name, st in result["summary"].items():
         if st is None or name == "instances_by_status":
             continue
-        seg = st["segmentation_cost_mean"]
+        reg, seg, both = (st[f"{c}_cost_mean"] for c in ("registration", "segmentation", "stages"))
+        costs = ([] if reg is None else [f"registration costs {reg:+.2f} dB"]) + (
+            [] if seg is None else [f"segmentation {seg:+.2f} dB"]) + (
+            [f"the stages together {both:+.2f} dB"] if reg is None and both is not None else [])
         print(f"{name} ({st['scenes']} scenes): masked gain mean " + ", ".join(
             f"{k} {st[k]['mean']:+.2f} (worst {st[k]['worst']:+.2f}, sd {st[k]['sd']:.2f})" for k in runs)
-            + f"; registration costs {st['registration_cost_mean']:+.2f} dB"
-            + ("" if seg is None else f", segmentation {seg:+.2f} dB"))
+            + ("; " + ", ".join(costs) if costs else ""))
+        for k in runs:
+            sharp = st[k]["sharp_classes"]
+            if sharp:
+                print(f"  {k}: own {signed(sharp['own_gain_mean'])}, shared {signed(sharp['shared_gain_mean'])} dB"
+                      f" ({100 * sharp['shared_pixel_share_mean']:.0f} % of the pixels shared)")
 
 
 def main(cfg: BenchSuiteOracleConfig) -> Dict:
     given = {k: paths for k, paths in zip(RUNS, (cfg.defaults, cfg.gt_poses, cfg.gt_instances)) if paths}
+    if "defaults" not in given or len(given) < 2:
+        raise ValueError("give the defaults' JSONs and at least one oracle's (--gt-poses, --gt-instances)")
     loaded = {k: rows_by_seed(paths, None if k == "defaults" else k) for k, paths in given.items()}
     parameters = loaded["defaults"][0]
     for k in list(loaded)[1:]:

@@ -15,8 +15,10 @@ def bench():
     return load_benchmark("bench_suite_oracle")
 
 
-def suite_json(path: Path, oracle, gains, instance_gains, effects=("far_test_views",), res="96x72") -> Path:
-    """A suite result with one scene per seed: ``gains`` {seed: masked gain}; ``instance_gains`` {seed: [gain]}."""
+def suite_json(path: Path, oracle, gains, instance_gains, effects=("far_test_views",), res="96x72",
+               sharp=None) -> Path:
+    """A suite result with one scene per seed: ``gains`` {seed: masked gain}; ``instance_gains`` {seed: [gain]};
+    ``sharp`` {seed: (own gain, shared gain, shared pixel share)}: the sharp classes of those seeds."""
     parameters = {"res": res, "n_train": 48, "base_iterations": 1500, "registration": "ours", "overrides": [],
                   "from_segmentation": oracle is not None, **({"oracle": oracle} if oracle else {})}
     scenes = [{
@@ -27,9 +29,17 @@ def suite_json(path: Path, oracle, gains, instance_gains, effects=("far_test_vie
             {"gt_id": 1, "success": True, "rotation_error_deg": 2.0 if seed == 0 else 30.0},
             {"gt_id": 2, "success": False, "rotation_error_deg": 0.0, "proposed_rotation_error_deg": 1.0},
         ] if oracle is None else []}, "time_s": {"ours": 60.0},
+        **({"coverage": sharp_coverage(*sharp[seed])} if sharp and seed in sharp else {}),
     } for seed, gain in gains.items()]
     path.write_text(json.dumps({"split": "dev", "parameters": parameters, "scenes": scenes}))
     return path
+
+
+def sharp_coverage(own: float, shared: float, shared_share: float) -> dict:
+    """The suite's coverage entry with only its sharp classes filled in (no unseen pixels)."""
+    classes = {"own": {"gain": own}, "shared": {"gain": shared}, "unseen": {"gain": None}}
+    share = {"own": 1.0 - shared_share, "shared": shared_share, "unseen": 0.0}
+    return {"sharp": {**classes, "pixel_share": share}}
 
 
 def test_costs_are_the_differences_between_the_runs(bench, tmp_path, capsys):
@@ -84,3 +94,32 @@ def test_runs_of_other_scenes_or_oracles_are_refused(bench, tmp_path):
     with pytest.raises(ValueError, match="no scene was run by all 3"):
         bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_poses=(p,), gt_instances=(elsewhere,), out=out))
     assert not out.exists()
+
+
+def test_without_exact_poses_the_stages_cost_together_and_sharp_classes_are_kept(bench, tmp_path, capsys):
+    d = suite_json(tmp_path / "d.json", None, {0: 0.5, 1: 2.0}, {0: [-1.5, 0.2], 1: [2.0, 1.0]},
+                   sharp={0: (0.4, 1.0, 0.1), 1: (1.5, 3.0, 0.4)})
+    i = suite_json(tmp_path / "i.json", "gt_instances", {0: 1.5, 1: 4.0}, {0: [0.6, 0.3], 1: [2.2, 1.4]},
+                   sharp={0: (1.2, 4.0, 0.1)}, effects=("coverage_imbalance",))
+    result = bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), gt_instances=(i,), out=tmp_path / "out.json"))
+    first, second = result["scenes"]
+    assert first["stages_cost"] == pytest.approx(1.0) and second["stages_cost"] == pytest.approx(2.0)
+    assert first["registration_cost"] is None and first["segmentation_cost"] is None
+    assert first["sharp_classes"]["gt_instances"]["gain"] == {"own": 1.2, "shared": 4.0, "unseen": None}
+    assert second["sharp_classes"]["gt_instances"] is None  # that run did not class its pixels
+    summary = result["summary"]["all"]
+    assert summary["stages_cost_mean"] == pytest.approx(1.5) and summary["registration_cost_mean"] is None
+    defaults = summary["defaults"]["sharp_classes"]
+    assert defaults["scenes"] == 2 and defaults["shared_gain_mean"] == pytest.approx(2.0)
+    assert defaults["own_gain_mean"] == pytest.approx(0.95) and defaults["unseen_gain_mean"] is None
+    assert defaults["shared_pixel_share_mean"] == pytest.approx(0.25)
+    assert summary["gt_instances"]["sharp_classes"]["scenes"] == 1
+    out = capsys.readouterr().out
+    assert "the stages together +1.50 dB" in out and "registration costs" not in out
+    assert "shared +4.00 dB" in out  # the oracle's summary line
+
+
+def test_the_defaults_alone_are_refused(bench, tmp_path):
+    d = suite_json(tmp_path / "d.json", None, {0: 0.5}, {0: [0.1]})
+    with pytest.raises(ValueError, match="at least one oracle"):
+        bench.main(bench.BenchSuiteOracleConfig(defaults=(d,), out=tmp_path / "out.json"))
