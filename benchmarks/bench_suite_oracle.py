@@ -27,6 +27,7 @@ Without ``--gt-instances`` only registration's cost is split off (and the tables
 from __future__ import annotations
 
 import json
+import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,12 +126,30 @@ def sharp_classes(row: Dict) -> Optional[Dict]:
     if not sharp:
         return None
     return {"gain": {c: sharp[c]["gain"] for c in SHARP_CLASSES},
+            "psnr": {c: {m: sharp[c][m] for m in ("baseline", "ours")} for c in SHARP_CLASSES},
+            "pixels": {c: sharp["pixels"][c] for c in SHARP_CLASSES},
             "pixel_share": {c: sharp["pixel_share"][c] for c in SHARP_CLASSES}}
+
+
+def pooled_gain(classed: List[Dict], cls: str) -> Optional[float]:
+    """The gain on one class's pixels of all scenes pooled: each method's PSNR over the union of the pixels (the
+    per-scene mean squared errors weighted by pixel count), so a scene with a few dozen pixels of the class weighs
+    that much. None where no scene has pixels of the class."""
+    rows = [c for c in classed if c["pixels"][cls] and c["psnr"][cls]["baseline"] is not None]
+    if not rows:
+        return None
+    n = sum(c["pixels"][cls] for c in rows)
+
+    def pooled_psnr(method: str) -> float:
+        mse = sum(c["pixels"][cls] * 10.0 ** (-c["psnr"][cls][method] / 10.0) for c in rows) / n
+        return -10.0 * math.log10(mse)
+
+    return pooled_psnr("ours") - pooled_psnr("baseline")
 
 
 def sharp_summary(scenes: List[Dict], run: str) -> Optional[Dict]:
     """Over the scenes whose run classed its pixels: the mean gain on each class (over the scenes with pixels of
-    that class), and the mean share of shared pixels."""
+    that class), the gain on the class's pixels pooled over the scenes, and the mean share of shared pixels."""
     classed = [s["sharp_classes"][run] for s in scenes if s["sharp_classes"].get(run)]
     if not classed:
         return None
@@ -139,6 +158,7 @@ def sharp_summary(scenes: List[Dict], run: str) -> Optional[Dict]:
     for c in SHARP_CLASSES:
         gains = [x["gain"][c] for x in classed if x["gain"][c] is not None]
         out[f"{c}_gain_mean"] = statistics.fmean(gains) if gains else None
+        out[f"{c}_gain_pooled"] = pooled_gain(classed, c)
     return out
 
 
@@ -231,7 +251,9 @@ def print_table(result: Dict) -> None:
             sharp = st[k]["sharp_classes"]
             if sharp:
                 print(f"  {k}: own {signed(sharp['own_gain_mean'])}, shared {signed(sharp['shared_gain_mean'])} dB"
-                      f" ({100 * sharp['shared_pixel_share_mean']:.0f} % of the pixels shared)")
+                      f" ({100 * sharp['shared_pixel_share_mean']:.0f} % of the pixels shared); pooled over the"
+                      f" scenes' pixels own {signed(sharp['own_gain_pooled'])}, shared"
+                      f" {signed(sharp['shared_gain_pooled'])} dB")
 
 
 def main(cfg: BenchSuiteOracleConfig) -> Dict:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -35,11 +36,14 @@ def suite_json(path: Path, oracle, gains, instance_gains, effects=("far_test_vie
     return path
 
 
-def sharp_coverage(own: float, shared: float, shared_share: float) -> dict:
-    """The suite's coverage entry with only its sharp classes filled in (no unseen pixels)."""
-    classes = {"own": {"gain": own}, "shared": {"gain": shared}, "unseen": {"gain": None}}
+def sharp_coverage(own: float, shared: float, shared_share: float, pixels: int = 1000) -> dict:
+    """The suite's coverage entry with only its sharp classes filled in (no unseen pixels; the baseline at 20 dB)."""
+    classes = {"own": {"gain": own, "baseline": 20.0, "ours": 20.0 + own},
+               "shared": {"gain": shared, "baseline": 20.0, "ours": 20.0 + shared},
+               "unseen": {"gain": None, "baseline": None, "ours": None}}
     share = {"own": 1.0 - shared_share, "shared": shared_share, "unseen": 0.0}
-    return {"sharp": {**classes, "pixel_share": share}}
+    counts = {"own": round(pixels * (1.0 - shared_share)), "shared": round(pixels * shared_share), "unseen": 0}
+    return {"sharp": {**classes, "pixels": counts, "pixel_share": share}}
 
 
 def test_costs_are_the_differences_between_the_runs(bench, tmp_path, capsys):
@@ -113,6 +117,10 @@ def test_without_exact_poses_the_stages_cost_together_and_sharp_classes_are_kept
     assert defaults["scenes"] == 2 and defaults["shared_gain_mean"] == pytest.approx(2.0)
     assert defaults["own_gain_mean"] == pytest.approx(0.95) and defaults["unseen_gain_mean"] is None
     assert defaults["shared_pixel_share_mean"] == pytest.approx(0.25)
+    # pooled: 100 shared pixels at +1 dB and 400 at +3 dB, both against a 20 dB baseline
+    pooled = -10 * math.log10((100 * 10 ** -2.1 + 400 * 10 ** -2.3) / 500) - 20.0
+    assert defaults["shared_gain_pooled"] == pytest.approx(pooled) and 1.0 < pooled < 3.0
+    assert defaults["unseen_gain_pooled"] is None
     assert summary["gt_instances"]["sharp_classes"]["scenes"] == 1
     out = capsys.readouterr().out
     assert "the stages together +1.50 dB" in out and "registration costs" not in out
