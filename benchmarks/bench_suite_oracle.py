@@ -27,7 +27,6 @@ Without ``--gt-instances`` only registration's cost is split off (and the tables
 from __future__ import annotations
 
 import json
-import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,10 +34,13 @@ from typing import Dict, List, Optional, Tuple
 
 import tyro
 
+from splatreplace_ns.eval.coverage import CLASS_NAMES
+from splatreplace_ns.eval.coverage_scores import mean_coverage_gains
+from splatreplace_ns.eval.metrics import mse_to_psnr
 from splatreplace_ns.tools.bench.output import write_result_json
 
 RUNS = ("defaults", "gt_poses", "gt_instances")
-SHARP_CLASSES = ("own", "shared", "unseen")
+SHARP_CLASSES = tuple(CLASS_NAMES.values())  # own, shared, unseen
 WRONG_POSE_DEG = 5.0
 """As the suite counts a wrong pose (``splatreplace_ns.tools.bench.suite.WRONG_POSE_DEG``)."""
 
@@ -125,8 +127,7 @@ def sharp_classes(row: Dict) -> Optional[Dict]:
     sharp = (row.get("coverage") or {}).get("sharp")
     if not sharp:
         return None
-    return {"gain": {c: sharp[c]["gain"] for c in SHARP_CLASSES},
-            "psnr": {c: {m: sharp[c][m] for m in ("baseline", "ours")} for c in SHARP_CLASSES},
+    return {**{c: {m: sharp[c][m] for m in ("baseline", "ours", "gain")} for c in SHARP_CLASSES},
             "pixels": {c: sharp["pixels"][c] for c in SHARP_CLASSES},
             "pixel_share": {c: sharp["pixel_share"][c] for c in SHARP_CLASSES}}
 
@@ -135,14 +136,13 @@ def pooled_gain(classed: List[Dict], cls: str) -> Optional[float]:
     """The gain on one class's pixels of all scenes pooled: each method's PSNR over the union of the pixels (the
     per-scene mean squared errors weighted by pixel count), so a scene with a few dozen pixels of the class weighs
     that much. None where no scene has pixels of the class."""
-    rows = [c for c in classed if c["pixels"][cls] and c["psnr"][cls]["baseline"] is not None]
+    rows = [c for c in classed if c["pixels"][cls] and c[cls]["baseline"] is not None]
     if not rows:
         return None
     n = sum(c["pixels"][cls] for c in rows)
 
     def pooled_psnr(method: str) -> float:
-        mse = sum(c["pixels"][cls] * 10.0 ** (-c["psnr"][cls][method] / 10.0) for c in rows) / n
-        return -10.0 * math.log10(mse)
+        return mse_to_psnr(sum(c["pixels"][cls] * 10.0 ** (-c[cls][method] / 10.0) for c in rows) / n)
 
     return pooled_psnr("ours") - pooled_psnr("baseline")
 
@@ -155,9 +155,9 @@ def sharp_summary(scenes: List[Dict], run: str) -> Optional[Dict]:
         return None
     out = {"scenes": len(classed), "shared_pixel_share_mean": statistics.fmean(c["pixel_share"]["shared"]
                                                                                 for c in classed)}
+    means = mean_coverage_gains(classed)
     for c in SHARP_CLASSES:
-        gains = [x["gain"][c] for x in classed if x["gain"][c] is not None]
-        out[f"{c}_gain_mean"] = statistics.fmean(gains) if gains else None
+        out[f"{c}_gain_mean"] = means[c]
         out[f"{c}_gain_pooled"] = pooled_gain(classed, c)
     return out
 
@@ -231,7 +231,7 @@ def print_table(result: Dict) -> None:
         for k in runs:
             c = s["sharp_classes"].get(k)
             cells.append(f"{k}: " + ("not classed" if c is None else " / ".join(
-                signed(c["gain"][x]) or "-" for x in SHARP_CLASSES)))
+                signed(c[x]["gain"]) or "-" for x in SHARP_CLASSES)))
         share = next((c["pixel_share"]["shared"] for c in s["sharp_classes"].values() if c), None)
         print(f"{s['seed']:>5} shared {'-' if share is None else f'{100 * share:.0f} %':>5}  " + "; ".join(cells))
     for status, st in result["summary"]["instances_by_status"].items():
