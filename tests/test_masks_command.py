@@ -191,7 +191,13 @@ def test_skip_bad_clicks_makes_the_other_masks_and_keeps_their_ids(base_run, tmp
     path.write_text(json.dumps([clicks[0], dict(clicks[0])] + clicks[1:]))
     skipped = make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))
     assert len(skipped["skipped_clicks"]) == 1 and "same object" in skipped["skipped_clicks"][0]
-    assert read_dataset_meta(data)["instances"] == [{"id": k, "class": "crate"} for k in (3, 4)]
+    meta = read_dataset_meta(data)
+    assert meta["instances"] == [{"id": k, "class": "crate"} for k in (3, 4)]
+    # the crate clicked twice stays background in every frame: no other click's instance takes it
+    for frame in meta["frames"]:
+        ours = cv2.imread(str(data / frame["instance_mask_path"]), cv2.IMREAD_UNCHANGED)
+        full = cv2.imread(str(capture / frame["instance_mask_path"]), cv2.IMREAD_UNCHANGED)
+        assert (ours[full == 1] == 0).mean() > 0.99
     path.write_text(json.dumps([clicks[0], dict(clicks[0])]))  # and when no click is left, the command stops
     with pytest.raises(ClickError, match="no click makes an instance:\n.*same object"):
         make_masks(MasksCommand(data, clicks=path, load_config=report["config"], skip_bad_clicks=True))

@@ -12,7 +12,7 @@ import torch
 
 from splatreplace_ns.tools.bench.masks import boundary_f_score
 from splatreplace_ns.instances.geometric import cluster_gaussians, instance_ids
-from splatreplace_ns.instances.geometric_config import ClusteringConfig
+from splatreplace_ns.instances.geometric_config import PLANE, ClusteringConfig
 from splatreplace_ns.instances.point_cloud import weighted_median
 from splatreplace_ns.instances.projection import (
     ClickError, LiftedClick, frames_holding, lift_click, lift_pixel, project_points, visible_by_depth,
@@ -387,6 +387,26 @@ def test_a_lost_clicks_object_is_not_given_to_its_neighbours_instance():
     # a lost click on the open floor seeds nothing: the instances are as without it
     on_floor = instance_ids(clicks, means, opacities, colours, clustering, cfg, lost=[lifted(2, [0.0, 1.5, 0.0])])
     assert (on_floor == given_away).all()
+
+
+def test_a_lost_clicks_foot_is_not_reclaimed_by_its_neighbour():
+    """Copies of one class side by side: b and c touch and share a colour, c's click is lost (left out as on the
+    floor). The plane Gaussians of c's foot are of the class's colour next to b's instance; the colour reclaim,
+    growing b's foot ring by ring, used to walk across into c's. What c's lost click wins holds its foot."""
+    means, truth, colours = boxes_on_a_floor()
+    colours[truth == 3] = colours[truth == 2]  # c is a copy of b's class
+    opacities = np.ones(len(means))
+    cfg = ClusteringConfig()
+    clustering = cluster_gaussians(means, opacities, cfg)
+    c_foot = (truth == 3) & (clustering.labels == PLANE)
+    assert c_foot.sum() >= 10  # the floor's band holds c's lowest Gaussians
+    clicks = [lifted(0, [-1.0, 0.0, 0.5]), lifted(1, [0.8, -0.1, 0.5])]
+    ids = instance_ids(clicks, means, opacities, colours, clustering, cfg, lost=[lifted(2, [0.8, 0.6, 0.5])])
+    # (before, 8 of its 18 foot Gaussians went to b; one at the boxes' contact still may)
+    assert (ids[truth == 3] == 0).mean() > 0.95 and (ids[c_foot] == 2).mean() < 0.15
+    b_foot = (truth == 2) & (clustering.labels == PLANE)
+    assert (ids[b_foot] == 2).mean() > 0.7  # b still takes its own foot back (9 of 11)
+    assert set(np.unique(ids)) <= {0, 1, 2}  # no id past the clicks'
 
 
 def test_bad_clicks_are_named():

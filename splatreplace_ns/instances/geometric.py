@@ -260,7 +260,9 @@ def instance_ids(
 
     ``lost``: clicks left out as on a supporting plane. Each still marks an object the user clicked: where its
     voters off the plane lie in a cluster being given to other clicks, it seeds that cluster's split too, and what
-    it wins stays background instead of going to a neighbour's instance.
+    it wins stays background instead of going to a neighbour's instance. Until the end what it wins holds its
+    place as an instance of its own, so that its foot in the plane's band goes with it, not with the neighbour
+    whose foot the colour reclaim grows ring by ring (crates of one class side by side).
 
     Raises:
         ClickError: from :func:`clusters_of_clicks`, or two clicks on the same spot of one cluster.
@@ -274,7 +276,8 @@ def instance_ids(
     for position, click in enumerate(clicks):
         by_cluster.setdefault(chosen[click.index], []).append(position)
     on_plane = np.flatnonzero(clustering.labels == PLANE)
-    walks: Dict[int, Tuple[np.ndarray, int, Walk]] = {}  # cluster → (walked points, own count, walk)
+    walks: Dict[int, Tuple[np.ndarray, int, Walk, List[int]]] = {}  # cluster → (walked, own count, walk, ids)
+    lost_classes: List[str] = []  # class of each lost click's seed; what it wins is id len(clicks) + 1 + its index
     samples: Dict[str, List[np.ndarray]] = {}  # class → colours of points surely its own (its colour model)
     floor = floor_plane(clustering.planes, points=means[opacities >= cfg.min_opacity])
     height = None if floor is None else (means @ floor[:3] + floor[3]) / clustering.spacing
@@ -290,8 +293,12 @@ def instance_ids(
         points = np.stack([clicks[p].point.double().numpy() for p in positions])
         if len(positions) > 1:
             check_distinct_clicks([clicks[p] for p in positions], points, clustering.spacing, cfg)
-        # seeds after the clicks' own: what they win stays background
-        points = np.concatenate([points] + lost_points.get(cluster, []))
+        # seeds after the clicks' own: what they win stays background (ids past the clicks' until the end)
+        lost_here = lost_points.get(cluster, [])
+        owner_ids = [p + 1 for p in positions] + list(range(len(lost_classes) + len(clicks) + 1,
+                                                            len(lost_classes) + len(clicks) + 1 + len(lost_here)))
+        lost_classes.extend(cls for _, cls in lost_here)
+        points = np.concatenate([points] + [point for point, _ in lost_here])
         floor_near = nearby_points(means[on_plane], means[members], cfg.background_radius * clustering.spacing)
         if len(points) == 1 and not len(floor_near):
             ids[members] = positions[0] + 1
@@ -301,15 +308,16 @@ def instance_ids(
         if cfg.split_method == "geodesic":
             _, seeds = cKDTree(means[members]).query(points, k=1)
             owner = geodesic_split(means[members], colours[members], seeds, clustering.spacing, cfg)
+            for j, k in enumerate(owner_ids):
+                ids[members[owner == j]] = k
             for j, p in enumerate(positions):
-                ids[members[owner == j]] = p + 1
                 samples.setdefault(clicks[p].cls, []).append(colours[members[owner == j]])
             continue
         walked = np.concatenate([members, on_plane[floor_near]])
         _, seeds = cKDTree(means[walked]).query(points, k=1)
         walk = random_walk(means[walked], colours[walked], seeds, clustering.spacing, cfg,
                            np.arange(len(walked)) >= len(members))
-        walks[cluster] = (walked, len(members), walk)
+        walks[cluster] = (walked, len(members), walk, owner_ids)
         sure = sure_points(walk, cfg.colour_model_probability)
         for j, p in enumerate(positions):
             samples.setdefault(clicks[p].cls, []).append(colours[walked[sure == j]])
@@ -318,11 +326,11 @@ def instance_ids(
     # one colour model per class, from every instance of it in the scene: copies look alike, and an instance
     # half taken by its neighbour still has siblings elsewhere that show the class's colours
     histograms = {cls: colour_histogram(np.concatenate(parts), cfg.colour_bins) for cls, parts in samples.items()}
-    for cluster, (walked, num_members, walk) in walks.items():
+    for cluster, (walked, num_members, walk, owner_ids) in walks.items():
         owner = walk_owners(walk, means[walked], cfg)[:num_members]  # the plane's points stay planes
         members = walked[:num_members]
-        for j, p in enumerate(by_cluster[cluster]):
-            ids[members[owner == j]] = p + 1
+        for j, k in enumerate(owner_ids):
+            ids[members[owner == j]] = k
     if floor is not None and cfg.floor_under_band > 0:
         # a class whose copies' lowest points lie above the floor (on a step, a platform) has its own ground
         ground = {k + 1: float(np.median(bottoms[c.cls])) for k, c in enumerate(clicks)
@@ -330,20 +338,22 @@ def instance_ids(
         ids = cut_off_the_floor(ids, means, floor, clustering.spacing, cfg.floor_under_band, cfg.floor_reach, ground,
                                 opacities >= cfg.floor_support_opacity)
     if cfg.colour_reclaim_radius > 0:
-        ids = reclaim_by_colour(ids, means, colours, on_plane, histograms, [c.cls for c in clicks], clustering.spacing, cfg)
+        ids = reclaim_by_colour(ids, means, colours, on_plane, histograms, [c.cls for c in clicks] + lost_classes,
+                                clustering.spacing, cfg)
+    ids[ids > len(clicks)] = 0  # the lost clicks' objects
     return ids
 
 
 def lost_seeds(
     lost: Sequence[LiftedClick], means: np.ndarray, opacities: np.ndarray, clustering: Clustering,
     cfg: ClusteringConfig, clusters: set,
-) -> Dict[int, List[np.ndarray]]:
-    """cluster → [[1, 3] point] of each lost click whose voters off the planes choose one of ``clusters`` (by the
-    same ray-weighted vote as a click's); a lost click with no such voter seeds nothing."""
+) -> Dict[int, List[Tuple[np.ndarray, str]]]:
+    """cluster → [([1, 3] point, class)] of each lost click whose voters off the planes choose one of ``clusters``
+    (by the same ray-weighted vote as a click's); a lost click with no such voter seeds nothing."""
     from scipy.spatial import cKDTree
 
     solid = np.flatnonzero((opacities >= cfg.min_opacity) & (clustering.labels >= 0))
-    out: Dict[int, List[np.ndarray]] = {}
+    out: Dict[int, List[Tuple[np.ndarray, str]]] = {}
     if not len(solid):
         return out
     tree = cKDTree(means[solid])
@@ -353,7 +363,7 @@ def lost_seeds(
             continue
         cluster = vote(clustering.labels[near], means[near], click, clustering.spacing, cfg.ray_weighted_vote)
         if cluster in clusters:
-            out.setdefault(cluster, []).append(np.asarray(point, dtype=np.float64)[None])
+            out.setdefault(cluster, []).append((np.asarray(point, dtype=np.float64)[None], click.cls))
     return out
 
 
@@ -373,7 +383,8 @@ def reclaim_by_colour(
     Args:
         ids: [N] instance id per Gaussian (click position + 1, 0 = background).
         means: [N, 3]; colours: [N, 3] in [0, 1]; on_plane: indices of the plane Gaussians.
-        histograms: class → :func:`colour_histogram`; click_classes: class of each click position.
+        histograms: class → :func:`colour_histogram`; click_classes: class of each id − 1 (a class with no histogram
+            takes nothing).
 
     Returns:
         [N] ids with the reclaimed plane Gaussians set.
@@ -399,7 +410,9 @@ def reclaim_by_colour(
         near = np.isfinite(dist)
         candidates, owner = left[near], out[owned[nearest[near]]]
         bins = colour_bin(colours[candidates], cfg.colour_bins)
-        own = np.array([histograms[click_classes[k - 1]][b] for k, b in zip(owner, bins)], dtype=np.float64)
+        # a class no kept click has (a lost click's only) has no colour model: its object takes nothing, but holds
+        own = np.array([histograms.get(click_classes[k - 1], plane_histogram)[b] for k, b in zip(owner, bins)],
+                       dtype=np.float64)
         take = own >= cfg.colour_reclaim_ratio * plane_histogram[bins]
         if not take.any():
             break
@@ -409,12 +422,12 @@ def reclaim_by_colour(
 
 
 def check_distinct_clicks(clicks: Sequence[LiftedClick], points: np.ndarray, spacing: float, cfg: ClusteringConfig) -> None:
-    """Raises ClickError when two of one cluster's clicks ([S, 3] ``points``) lie within ``duplicate_radius``
-    spacings: one object clicked twice."""
+    """Raises ClickError when two of one cluster's clicks ([S, 3] ``points``) lie within ``split_seed_radius``
+    spacings (one inside the other's seed of the split): one object clicked twice."""
     gaps = np.linalg.norm(points[:, None] - points[None], axis=-1)
     np.fill_diagonal(gaps, np.inf)
     a, b = np.unravel_index(np.argmin(gaps), gaps.shape)
-    if gaps[a, b] <= cfg.duplicate_radius * spacing:
+    if gaps[a, b] <= cfg.split_seed_radius * spacing:
         raise DuplicateClicksError(
             f"{clicks[b].source}: falls on the same object as {clicks[a].source} "
             "(same cluster, a few Gaussians apart); one click per instance", (clicks[a].source, clicks[b].source)

@@ -270,8 +270,10 @@ def masks_from_model(
             drop = {k for k, click in enumerate(lifted) if click.source in err.sources}
             if not cfg.skip_bad_clicks or not drop:
                 raise
-            # the base model holds both as one object: neither instance is made (so neither is replaced)
+            # the base model holds both as one object: neither instance is made (so neither is replaced), and like a
+            # click left out as on a plane each still marks an object no other click's instance may take
             skipped.append(f"{err}: both left out")
+            lost = list(lost) + [click for k, click in enumerate(lifted) if k in drop]
             positions = [p for k, p in enumerate(positions) if k not in drop]
             lifted = [click for k, click in enumerate(lifted) if k not in drop]
             if not positions:
