@@ -142,6 +142,35 @@ def test_a_regime_folder_links_the_scene_and_is_reused(tmp_path, monkeypatch):
         make_regime_folder(scene, "oracle")
 
 
+def test_a_masks_run_in_the_users_regime_starts_from_the_sparse_cloud(tmp_path, monkeypatch):
+    """``bench masks --inputs user`` (and ``bench mask-passes``) strip their capture from the user's folder: the
+    sparse cloud, not the scene's dense one; no masks, no depth; the same images and clicks."""
+    from splatreplace_ns.tools.bench import sparse_points
+    from splatreplace_ns.tools.bench.masks import regime_source
+    from splatreplace_ns.tools.sim.capture import strip_ground_truth
+
+    scene = tmp_path / "scene"
+    meta = write_dataset(scene)
+    meta["ply_file_path"] = "dense.ply"
+    (scene / "dense.ply").write_text("dense")
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    (scene / "clicks.json").write_text(json.dumps([{"file_path": "images/0000.png", "xy": [5, 4], "class": "chair"}]))
+
+    def fake_cloud(source, out_ply, upsample=4):  # the triangulation itself is tested above
+        Path(out_ply).write_text("sparse")
+        return {"points": 30, "written": True}
+
+    monkeypatch.setattr(sparse_points, "write_sparse_cloud", fake_cloud)
+    assert regime_source(scene, "exact") == scene
+    capture = tmp_path / "capture"
+    strip_ground_truth(regime_source(scene, "user"), capture)
+    stripped = json.loads((capture / "transforms.json").read_text())
+    assert (capture / stripped["ply_file_path"]).read_text() == "sparse"
+    assert not any("instance_mask_path" in f or "depth_file_path" in f for f in stripped["frames"])
+    assert (capture / "images" / "0000.png").read_bytes() == (scene / "images" / "0000.png").read_bytes()
+    assert json.loads((capture / "clicks.json").read_text())[0]["xy"] == [5, 4]
+
+
 def test_the_demo_shows_masked_figures_only_when_both_use_the_true_masks():
     from splatreplace_ns.tools.demo import comparable_masks
 

@@ -18,7 +18,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Literal, Optional, Tuple
 
 from splatreplace_ns.tools.bench.output import fmt_number, spread, write_result_json
 
@@ -61,6 +61,9 @@ class BenchMaskPassesConfig:
     """Training and test views (the suite's)."""
     base_iterations: int = 1500
     """Base iterations the masks are made after (the demo budget's base stage, as ``ns-train`` makes them)."""
+    inputs: Literal["exact", "user"] = "exact"
+    """What the base model trains from (``bench masks --inputs``): the dense cloud sampled from the true depth, or
+    a user's (COLMAP's sparse points at the scene's poses), whose base model is far sparser."""
     pays_at: float = 0.005
     """A rule pays when the scenes' mean mIoU drops by at least this much without it."""
     json: Optional[Path] = None
@@ -83,7 +86,7 @@ def _scene_run(cfg: BenchMaskPassesConfig, seed: int, name: str, base_config: Op
 
     masks_cfg = BenchMasksConfig(
         suite_seed=seed, res=cfg.res, n_train=cfg.n_train, n_test=cfg.n_test, base_iterations=cfg.base_iterations,
-        load_config=base_config, clustering=dataclasses.replace(ClusteringConfig(), **variant_settings(name)),
+        inputs=cfg.inputs, load_config=base_config, clustering=dataclasses.replace(ClusteringConfig(), **variant_settings(name)),
         downstream=False, oracle=base_config is None, data_root=cfg.data_root, out_dir=cfg.out_dir,
     )
     start = time.perf_counter()
@@ -119,7 +122,8 @@ def run_mask_passes(cfg: BenchMaskPassesConfig) -> Dict:
         variant_settings(name)  # an unknown pass stops here, before anything trains
     runs: Dict[str, Dict[int, Dict]] = {name: {} for name in names}
     for k, seed in enumerate(cfg.seeds):
-        folder = cfg.out_dir / f"{cfg.res}_{cfg.n_train}v{cfg.n_test}_{cfg.base_iterations}" / str(seed)
+        regime = "" if cfg.inputs == "exact" else f"_{cfg.inputs}"
+        folder = cfg.out_dir / f"{cfg.res}_{cfg.n_train}v{cfg.n_test}_{cfg.base_iterations}{regime}" / str(seed)
         base_config: Optional[Path] = None
         for name in names:
             saved = folder / f"{name}.json"
@@ -166,7 +170,7 @@ def summarise_passes(runs: Dict[str, Dict[int, Dict]], cfg: BenchMaskPassesConfi
         "base_s": spread([r["base_s"] for r in defaults.values()]),
         "rows": rows,
         "parameters": {"res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test,
-                       "base_iterations": cfg.base_iterations, "pays_at": cfg.pays_at},
+                       "base_iterations": cfg.base_iterations, "inputs": cfg.inputs, "pays_at": cfg.pays_at},
     }
 
 

@@ -21,7 +21,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Literal, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -33,6 +33,7 @@ from splatreplace_ns.datamanager.click_masks import MASKS_DIR, read_dataset_meta
 from splatreplace_ns.tools.sim.capture import strip_ground_truth
 from splatreplace_ns.instances.geometric_config import ClusteringConfig
 from splatreplace_ns.tools.bench.output import write_result_json
+from splatreplace_ns.tools.bench.user_inputs import make_regime_folder
 
 NO_MASKED = "a downstream run reported no masked PSNR (no test view shows an instance)"
 
@@ -59,6 +60,10 @@ class BenchMasksConfig:
     base_frames: BaseFrames = "auto"
     """Frames the masks run's base stage trains on (``splatreplace masks --base-frames``): the scenes list their
     split, so ``auto`` trains on the training views; ``every`` on the test views too."""
+    inputs: Literal["exact", "user"] = "exact"
+    """What the base model trains from (never depth or masks): ``exact``, the scene's dense point cloud sampled from
+    the true depth; ``user``, what a user has (``bench suite --inputs user``: COLMAP's sparse points at the scene's
+    poses, or random Gaussians where it finds too few)."""
     load_config: Optional[Path] = None
     """Reuse this base run (config.yml of an earlier masks run on the same capture) instead of training."""
     backends: Tuple[str, ...] = ("geometric",)
@@ -217,6 +222,13 @@ def scene_of(cfg: BenchMasksConfig) -> Path:
     return cached_scene(cfg.preset, cfg.res, cfg.n_train, cfg.n_test, cfg.data_root)
 
 
+def regime_source(scene: Path, inputs: str) -> Path:
+    """The folder a masks run's capture is stripped from (:func:`strip_ground_truth`: images, cameras, the point
+    cloud and the clicks are kept): the scene itself, or its ``bench suite --inputs user`` folder, whose cloud is
+    COLMAP's sparse points (none: random Gaussians)."""
+    return scene if inputs == "exact" else make_regime_folder(scene, inputs)
+
+
 def with_ground_truth_masks(scene: Path, capture: Path, out: Path) -> Path:
     """A copy of the capture whose masks and instances are the scene's ground truth (the reference run)."""
     if out.exists():
@@ -297,17 +309,18 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
 
     torch.set_num_threads(1)  # measured faster than 2 on the shared two-core machines
     scene = scene_of(cfg)
-    # one capture folder per scene (preset, resolution, views): runs at two resolutions must not share one
-    root = cfg.data_root / f"masks_{scene.name}"
+    source = regime_source(scene, cfg.inputs)
+    # one capture folder per scene (preset, resolution, views) and inputs: runs at two resolutions must not share one
+    name = f"masks_{source.name}"
     rows, base_config, base_s = [], cfg.load_config, None
     first_capture = None
     for backend in cfg.backends:
-        capture = root / backend
-        strip_ground_truth(scene, capture)
+        capture = cfg.data_root / name / backend
+        strip_ground_truth(source, capture)
         command = MasksCommand(
             capture, backend=backend, load_config=base_config, base_iterations=cfg.base_iterations,
             base_frames=cfg.base_frames,
-            output_dir=cfg.out_dir / f"masks_{scene.name}", sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
+            output_dir=cfg.out_dir / name, sam_encoder=cfg.sam_encoder, sam_decoder=cfg.sam_decoder,
             border=BorderConfig(method=cfg.border), clustering=cfg.clustering, skip_bad_clicks=cfg.skip_bad_clicks,
         )
         report = make_masks(command)
@@ -330,7 +343,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
 
     downstream: Dict = {"psnr_masked_gt_masks": None, "psnr_masked_our_masks": None}
     if cfg.downstream and first_capture is not None:
-        reference = with_ground_truth_masks(scene, first_capture, root / "gt_masks")
+        reference = with_ground_truth_masks(scene, first_capture, first_capture.parent / "gt_masks")
         ours = downstream_run(cfg, first_capture, scene, "downstream_our_masks")
         gt = downstream_run(cfg, reference, scene, "downstream_gt_masks")
         downstream = {
@@ -359,6 +372,7 @@ def run_masks_bench(cfg: BenchMasksConfig) -> Dict:
         "base": {"config": str(base_config), "time_s": base_s, "reused": cfg.load_config is not None},
         "parameters": {
             "res": cfg.res, "n_train": cfg.n_train, "n_test": cfg.n_test, "base_iterations": cfg.base_iterations,
+            "inputs": cfg.inputs,
             "base_frames": cfg.base_frames,
             "border": cfg.border, "boundary_tolerance": cfg.boundary_tolerance,
             "clustering": dataclasses.asdict(cfg.clustering),
