@@ -295,8 +295,8 @@ def instance_ids(
             check_distinct_clicks([clicks[p] for p in positions], points, clustering.spacing, cfg)
         # seeds after the clicks' own: what they win stays background (ids past the clicks' until the end)
         lost_here = lost_points.get(cluster, [])
-        owner_ids = [p + 1 for p in positions] + list(range(len(lost_classes) + len(clicks) + 1,
-                                                            len(lost_classes) + len(clicks) + 1 + len(lost_here)))
+        first_lost_id = len(clicks) + 1 + len(lost_classes)
+        owner_ids = [p + 1 for p in positions] + [first_lost_id + m for m in range(len(lost_here))]
         lost_classes.extend(cls for _, cls in lost_here)
         points = np.concatenate([points] + [point for point, _ in lost_here])
         floor_near = nearby_points(means[on_plane], means[members], cfg.background_radius * clustering.spacing)
