@@ -275,7 +275,7 @@ def downstream_run(cfg: BenchMasksConfig, data: Path, scene: Path, name: str) ->
     from splatreplace_ns.method.train import evaluate_test_views, make_trainer_config, run_training
 
     config = make_trainer_config(
-        data, cfg.out_dir / f"masks_{scene.name}", cfg.downstream_base_iterations,
+        data, cfg.out_dir / data.parent.name, cfg.downstream_base_iterations,  # the capture's masks_<scene>[_user]
         cfg.downstream_contrastive_iterations, cfg.downstream_finetune_iterations, experiment_name=name,
     )
     config.pipeline.model.num_downscales = 0
