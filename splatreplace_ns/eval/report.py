@@ -281,6 +281,8 @@ def replacement_report(model) -> Dict[str, Dict]:
             row["class_agreement"] = dict(entry["class_agreement"])
         if "pose_probability" in entry:  # the chance the chosen pose is right (poses.pose_probability)
             row["pose_probability"] = entry["pose_probability"]
+        if "size_ratio" in entry:  # its size against its template's (poses.decision.size_ratio)
+            row["shape"] = {"fitness": entry.get("fitness"), "size_ratio": entry["size_ratio"]}
         if "check_after_finetune" in entry:
             row["check_after_finetune"] = {k: entry["check_after_finetune"].get(k)
                                            for k in ("psnr_own", "psnr_replaced", "loss_db", "views", "revert")}

@@ -18,7 +18,9 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from rich.progress import track
 
 from splatreplace_ns.poses.class_evidence import class_agreement
-from splatreplace_ns.poses.decision import choose_pose, leave_lone_copies, polish_explains_as_well
+from splatreplace_ns.poses.decision import (
+    choose_pose, leave_doubtful_instances, leave_lone_copies, polish_explains_as_well, size_ratio,
+)
 from splatreplace_ns.poses.evidence import instance_id_maps
 from splatreplace_ns.poses.pose_probability import entry_probability
 from splatreplace_ns.poses.refine import polish_chosen
@@ -84,8 +86,10 @@ class RegistrationStage:
                 model.registration[iid]["class_agreement"] = row
             for entry in model.registration.values():
                 entry["pose_probability"] = entry_probability(entry)
+        doubtful = leave_doubtful_instances(model.registration, self.size_ratios(instances, config),
+                                            config.min_shape_fitness, config.max_size_ratio)
         alone = leave_lone_copies(model.registration, classes, config.min_class_copies)
-        for iid in alone:
+        for iid in doubtful + alone:
             CONSOLE.log(f"[bold yellow]{model.registration[iid]['message']}")
         self.registration_report = {
             "time_s": time.perf_counter() - start, "up_axis": [float(v) for v in config.up_axis],
@@ -93,6 +97,17 @@ class RegistrationStage:
             "image_choice_s": choice_s,
         }
         return model.registration
+
+    def size_ratios(self, instances: Dict[int, InstanceGaussians], config: RegistrationConfig) -> Dict[int, float]:
+        """{instance id: how many times its template's size it is (``poses.decision.size_ratio`` of the solid
+        centres, None where either has too few)} for every registered instance."""
+        def solid(iid: int):
+            inst = instances[iid]
+            return inst.centres()[inst.solid(config.min_opacity, config.min_solid_points)]
+
+        return {int(iid): size_ratio(solid(int(iid)), solid(int(entry["template"])))
+                for iid, entry in self.model.registration.items()
+                if int(iid) in instances and int(entry["template"]) in instances}
 
     @torch.no_grad()
     def choose_poses_by_images(self, instances: Dict[int, InstanceGaussians], config: RegistrationConfig) -> float:

@@ -95,6 +95,15 @@ class RegistrationConfig:
         image_margin_pixels: where the margin between the chosen candidate and its rival is measured: "all": the
             pixels every candidate is ranked on (the instance's and any placed copy's), "pair": the instance's and
             those two copies' only (pixels of far-off candidates, where the two render alike, do not shrink it).
+        min_shape_fitness: an accepted pose under which fewer than this fraction of the instance's solid centres
+            have a template centre within the ICP distance (its ``fitness``) is refused: the placed template meets
+            next to none of the instance's Gaussians, so the shape contradicts the images' choice or the instance
+            holds something other than a copy (0: off). Chosen on the dev split: right poses there meet at 0.065
+            or more (a thin class), the wrong ones it refuses at 0.00-0.02.
+        max_size_ratio: an accepted instance more than this many times longer or shorter than its template along
+            a principal axis of their solid centres (``decision.size_ratio``) is refused: copies of a class have one
+            size, so its mask holds more or less than one copy (inf: off). Chosen on the dev split: right poses there
+            lie within 0.57-1.41 times their template, wrong ones reach 0.49 and 4.3.
         min_class_copies: a class is replaced only when at least this many of its copies (its template copy
             included) are registered: a copy alone has no other to borrow from, and replacing it can only lose
             (1: every registered instance is replaced, as in the paper).
@@ -141,6 +150,8 @@ class RegistrationConfig:
     image_fine_poses: int = 2
     image_score: Literal["pooled", "per_view"] = "pooled"
     image_margin_pixels: Literal["all", "pair"] = "all"
+    min_shape_fitness: float = 0.03
+    max_size_ratio: float = 2.0
     min_class_copies: int = 2
 
     def __post_init__(self) -> None:
@@ -152,6 +163,8 @@ class RegistrationConfig:
             raise ValueError(f"RegistrationConfig.image_margin_pixels must be 'all' or 'pair', got {self.image_margin_pixels!r}")
         if self.select not in ("inliers", "photometric"):
             raise ValueError(f"RegistrationConfig.select must be 'inliers' or 'photometric', got {self.select!r}")
+        if not 0.0 <= self.min_shape_fitness <= 1.0 or not self.max_size_ratio >= 1.0:
+            raise ValueError("RegistrationConfig: min_shape_fitness must be in [0, 1] and max_size_ratio >= 1")
         if self.top_k < 1 or self.n_azimuth < 1 or self.n_elevation < 1:
             raise ValueError("RegistrationConfig: top_k, n_azimuth and n_elevation must be >= 1")
         if "onnx" in (self.fast_matcher, self.robust_matcher) and not self.onnx_model:

@@ -4,8 +4,10 @@ With the training images at hand (the method's pipeline, ``RegistrationConfig.im
 decides: the candidate whose placed template explains the instance's training pixels best
 (:class:`splatreplace_ns.poses.evidence.PlacedRenders`), accepted only when every rival turned far from it explains
 them clearly worse. Without images (registration on its own, e.g. ``splatreplace bench register``)
-:func:`choose_candidate` decides on the Gaussians' evidence and thresholds. :func:`leave_lone_copies` then leaves
-every class with a single registered copy as it was: it has nothing to share.
+:func:`choose_candidate` decides on the Gaussians' evidence and thresholds. :func:`leave_doubtful_instances` then
+leaves as it was every instance whose shape contradicts the choice (the placed template does not meet its Gaussians,
+or it is not the size of its template: its mask holds more or less than one copy), and :func:`leave_lone_copies`
+every class with a single registered copy: it has nothing to share.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -245,3 +248,75 @@ def leave_lone_copies(registration: Dict[int, Dict], classes: Dict[int, str], mi
                             f"{'y' if len(registered[classes[iid]]) == 1 else 'ies'} of '{classes[iid]}' (fewer than "
                             f"{min_copies}), nothing to share")
     return alone
+
+
+def principal_extents(points: np.ndarray) -> np.ndarray:
+    """Standard deviations of a point set along its principal axes, largest first.
+
+    Args:
+        points: (N, 3); non-finite rows are ignored.
+    Returns:
+        (3,) float64, all zero for fewer than 2 finite points.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < 2:
+        return np.zeros(3)
+    variances = np.linalg.eigvalsh(np.cov(pts.T))
+    return np.sqrt(np.clip(variances, 0.0, None))[::-1]
+
+
+def size_ratio(instance_points: np.ndarray, template_points: np.ndarray, min_points: int = 4) -> Optional[float]:
+    """How many times its template's size an instance is, along the principal axis where the two differ most
+    (:func:`principal_extents`, matched largest to largest, so the ratio does not depend on either's orientation).
+    Copies of one class have one size; a mask that took in a neighbour or the floor makes its instance longer, one
+    that kept a fragment shorter.
+
+    Args:
+        instance_points, template_points: (N, 3), (M, 3) centres.
+    Returns:
+        the ratio of that axis (1: the same size; 2: twice as long; 0.5: half), or None when either has fewer than
+        ``min_points`` points or no extent.
+    """
+    a, b = principal_extents(instance_points), principal_extents(template_points)
+    if min(len(instance_points), len(template_points)) < min_points or a[0] <= 0.0 or b[0] <= 0.0:
+        return None
+    # a flat part (a plane has one zero extent) counts at a thousandth of the largest, not as zero
+    log_ratios = np.log(np.maximum(a, 1e-3 * a[0]) / np.maximum(b, 1e-3 * b[0]))
+    return float(np.exp(log_ratios[np.argmax(np.abs(log_ratios))]))
+
+
+def leave_doubtful_instances(registration: Dict[int, Dict], sizes: Mapping[int, Optional[float]],
+                             min_shape_fitness: float, max_size_ratio: float) -> List[int]:
+    """Marks as not registered every accepted instance whose shape contradicts its pose or its mask. → those
+    instances.
+
+    - its Gaussians meet the template placed under the chosen pose at fewer than ``min_shape_fitness`` of them
+      (the entry's ``fitness``): the images chose a pose the shape does not support, or the instance holds
+      something other than a copy;
+    - it is more than ``max_size_ratio`` times larger or smaller than its template (``sizes``, from
+      :func:`size_ratio`; None: not judged): its mask holds more or less than one copy.
+
+    Args:
+        registration: {instance id: {"success", "fitness", "template", "message", ...}}, changed in place (each
+            judged entry gains ``size_ratio``).
+        sizes: {instance id: size ratio to its template or None}.
+    """
+    doubtful = []
+    for iid, entry in registration.items():
+        ratio = sizes.get(int(iid))
+        entry["size_ratio"] = ratio
+        if not entry["success"] or int(entry["template"]) == int(iid):
+            continue
+        why = None
+        if entry["fitness"] < min_shape_fitness:
+            why = (f"under its pose {entry['fitness']:.2f} of its Gaussians meet the template's (fewer than "
+                   f"{min_shape_fitness:g}): the shape does not support the pose, or the mask holds something else")
+        elif ratio is not None and max(ratio, 1.0 / ratio) > max_size_ratio:
+            why = (f"it is {ratio:.2f} times its template's size along an axis (beyond {max_size_ratio:g}x either "
+                   f"way): its mask holds more or less than one copy")
+        if why is not None:
+            entry["success"] = False
+            entry["message"] = f"instance {iid}: not replaced: {why}"
+            doubtful.append(int(iid))
+    return doubtful

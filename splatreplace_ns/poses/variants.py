@@ -7,6 +7,7 @@ beyond the paper is measured in both places the same way.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Dict, Mapping
 
@@ -22,6 +23,8 @@ PAPER_REGISTRATION: Mapping[str, object] = {
     "min_fitness": 0.0,  # every registration is accepted
     "image_choice": False,  # nothing is compared with the training images
     "min_class_copies": 1,  # a class's one registered copy is replaced too
+    "min_shape_fitness": 0.0,  # nor refused for its shape
+    "max_size_ratio": math.inf,
 }
 """Settings of §4.2 as written (the paper's MASt3R is replaced by the default matcher, which has offline weights)."""
 
@@ -34,6 +37,7 @@ REGISTRATION_VARIANTS: Mapping[str, Mapping[str, object]] = {
     "no_fine_turns": {"image_fine_turns_deg": ()},  # the image choice among the ICP-refined candidates only
     "no_image_choice": {"image_choice": False},  # the colour score chooses, the thresholds accept
     "no_lone_copies_rule": {"min_class_copies": 1},  # a class's one registered copy is replaced too
+    "no_doubt_check": {"min_shape_fitness": 0.0, "max_size_ratio": math.inf},  # shape and size do not veto
 }
 """Variant name → the settings it changes from the defaults."""
 
