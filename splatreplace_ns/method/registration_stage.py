@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 import torch
@@ -98,7 +98,8 @@ class RegistrationStage:
         }
         return model.registration
 
-    def size_ratios(self, instances: Dict[int, InstanceGaussians], config: RegistrationConfig) -> Dict[int, float]:
+    def size_ratios(self, instances: Dict[int, InstanceGaussians],
+                    config: RegistrationConfig) -> Dict[int, Optional[float]]:
         """{instance id: how many times its template's size it is (``poses.decision.size_ratio`` of the solid
         centres, None where either has too few)} for every registered instance."""
         def solid(iid: int):

@@ -84,7 +84,8 @@ class BenchSuiteConfig:
     """Registration rule of ours (``splatreplace_ns.poses.variants``): ours (the defaults), paper (§4.2 as
     written: most PnP inliers, rigid ICP, no added rule), or the defaults less one rule: no_upright,
     no_multistart, no_icp, no_fine_turns, no_image_choice (the colour score and the thresholds choose instead of
-    the training images), no_lone_copies_rule (a class's one registered copy is replaced too)."""
+    the training images), no_lone_copies_rule (a class's one registered copy is replaced too), no_doubt_check
+    (no shape's veto on an accepted pose)."""
     overrides: Tuple[str, ...] = ()
     """Settings of ours' trainer config as PATH=VALUE, e.g. pipeline.revert.enabled=False (the baseline keeps its own)."""
     from_segmentation: bool = False
