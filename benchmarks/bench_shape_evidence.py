@@ -29,6 +29,7 @@ import tyro
 
 from splatreplace_ns.poses.config import RegistrationConfig
 from splatreplace_ns.poses.decision import size_ratio
+from splatreplace_ns.poses.instance import InstanceGaussians
 from splatreplace_ns.tools.bench.output import write_result_json
 
 WRONG_DEG = 5.0  # a pose more than 5° from the truth is wrong (the suite's count)
@@ -48,11 +49,10 @@ def _states(run: Path) -> List[Dict]:
     return [torch.load(p, map_location="cpu", weights_only=False)["pipeline"] for p in paths]
 
 
-def _checkpoints(run: Path) -> Tuple[Dict, Dict]:
-    """(state of the checkpoint at the end of segmentation, state of the last one) of ours in ``run``. A variant
-    resumed from the defaults' segmentation (``--from-segmentation``) has none of its own at the end of
-    segmentation: the defaults' folder (its name up to the budget) has it."""
-    states = _states(run)
+def _segmented(run: Path, states: List[Dict]) -> Dict:
+    """The state of ours' checkpoint at the end of segmentation among ``states`` (``run``'s). A variant resumed from
+    the defaults' segmentation (``--from-segmentation``) has none of its own: the defaults' folder (its name up to
+    the budget) has it."""
     segmented = [s for s in states if s["_model._extra_state"]["stage"] == "segmented"]
     if not segmented:
         defaults = re.match(r"^(.*_\d+-\d+-\d+)_", run.name)
@@ -60,26 +60,26 @@ def _checkpoints(run: Path) -> Tuple[Dict, Dict]:
             raise FileNotFoundError(f"{run}: no checkpoint at the end of segmentation")
         segmented = [s for s in _states(run.parent / defaults.group(1))
                      if s["_model._extra_state"]["stage"] == "segmented"]
-    return segmented[0], states[-1]
+    return segmented[0]
 
 
 def accepted_poses(run: Path, cfg: RegistrationConfig) -> List[Dict]:
     """One row per instance whose pose the image choice accepted in ``run``: error against the truth, gain, the
     fitness under its pose and its size against its template (solid centres, as registration takes them)."""
     row = json.loads((run / "result.json").read_text())["row"]
-    last = _states(run)[-1]
-    registration = last["_model._extra_state"]["registration"]
+    states = _states(run)
+    registration = states[-1]["_model._extra_state"]["registration"]
     recorded = all("size_ratio" in entry for entry in registration.values())
     if not recorded:  # a run from before the veto: measured again from the checkpoint at the end of segmentation
-        segmented, _ = _checkpoints(run)
+        segmented = _segmented(run, states)
         means = segmented["_model.gauss_params.means"].numpy()
         labels = segmented["_model._extra_state"]["instance_labels"].numpy()
         opacities = 1.0 / (1.0 + np.exp(-segmented["_model.gauss_params.opacities"].numpy().reshape(-1)))
 
-    def solid(iid: int) -> np.ndarray:
+    def solid(iid: int) -> np.ndarray:  # as registration takes an instance's centres
         mine = labels == iid
-        keep = opacities[mine] >= cfg.min_opacity
-        return means[mine][keep] if int(keep.sum()) >= cfg.min_solid_points else means[mine]
+        inst = InstanceGaussians(means[mine], None, None, opacities[mine], None)
+        return inst.centres()[inst.solid(cfg.min_opacity, cfg.min_solid_points)]
 
     truth = {int(p["instance"]): p for p in row["registration"]["per_instance"]}
     rows = []
